@@ -1,0 +1,38 @@
+# Two commands on a fresh Debian 12 machine (as root): `make demo` and `make test`.
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py python3-petsc4py \
+            libopenblas0-pthread mpi-default-bin python3-venv python3-matplotlib python3-scipy
+export OMP_NUM_THREADS ?= 1
+export OPENBLAS_NUM_THREADS ?= 1
+
+.PHONY: demo test install bench lint clean
+
+install: $(VENV)/.installed
+
+# Debian packages: installed only when one is missing (dpkg-query), never twice.
+.deb-installed: Makefile
+	@missing=$$(for p in $(DEB_PKGS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null \
+	  | grep -q 'install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then echo "apt-get install $$missing"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; fi
+	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio" && touch $@
+
+$(VENV)/.installed: .deb-installed pyproject.toml
+	@test -x $(PY) || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $@
+
+demo: install
+	$(PY) scripts/demo.py
+
+test: install
+	$(PY) -m ruff check .
+	$(PY) -m pytest -q
+
+bench: install
+	$(PY) scripts/bench.py forward
+
+clean:
+	rm -rf $(VENV) .deb-installed out

@@ -1,0 +1,150 @@
+"""Distribute an `Anatomy` over MPI ranks as a dolfinx mesh with facet tags and P1 maps.
+
+`Domain` is what the solvers use: the mesh, facet tags, the P1 vector space, per-vertex rest
+coordinates, and `PointOperator`, the sparse map from nodal displacements to landmark points.
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import dataclasses
+
+import dolfinx
+import numpy as np
+import ufl
+from dolfinx import cpp as _cpp
+
+from fem import compat
+from meshes.anatomy import DIRICHLET_TAGS, Anatomy, Landmark
+
+
+@dataclasses.dataclass
+class Domain:
+    """A distributed soft-tissue mesh.
+
+    Attributes:
+        mesh: dolfinx mesh (mm); facet_tags: MeshTags on facets (meshes.anatomy tag values).
+        V: P1 vector space; X: (n_local_nodes, 3) rest coordinates of V's dof blocks (mm),
+        owned first, then ghosts. input_index: (n_local_nodes,) original vertex index of each
+        dof block. segments, pivots, landmarks, name: as in `Anatomy`.
+    """
+
+    mesh: object
+    facet_tags: object
+    V: object
+    X: np.ndarray
+    input_index: np.ndarray
+    segments: dict
+    pivots: dict
+    landmarks: dict
+    name: str
+    n_vertices: int
+    n_cells: int
+
+    @property
+    def comm(self) -> MPI.Comm:
+        return self.mesh.comm
+
+    @property
+    def n_owned(self) -> int:
+        """Number of dof blocks (vertices) owned by this rank."""
+        return self.V.dofmap.index_map.size_local
+
+    def facet_blocks(self, tags) -> np.ndarray:
+        """Local dof blocks (vertices) on facets with any of the given tags."""
+        facets = self.facet_tags.indices[np.isin(self.facet_tags.values, list(tags))]
+        return dolfinx.fem.locate_dofs_topological(self.V, self.mesh.topology.dim - 1, facets)
+
+    def dirichlet_bcs(self):
+        """Homogeneous Dirichlet conditions on fixed bone and rim."""
+        blocks = self.facet_blocks(DIRICHLET_TAGS)
+        zero = np.zeros(3, dtype=dolfinx.default_scalar_type
+                        if hasattr(dolfinx, "default_scalar_type") else np.float64)
+        return [dolfinx.fem.dirichletbc(zero, blocks, self.V)]
+
+    def point_operator(self, names) -> "PointOperator":
+        """Landmark operator for the named landmarks (in that order)."""
+        return PointOperator.build(self, [self.landmarks[n] for n in names])
+
+    def ds(self):
+        return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags)
+
+
+@dataclasses.dataclass
+class PointOperator:
+    """Sparse map L from nodal displacement u to points ``L(X + u)``, (Nt, 3) mm.
+
+    Each point is a weighted sum of three vertices. Rows are held on the rank that owns
+    the vertex; results are summed over ranks.
+    """
+
+    comm: MPI.Comm
+    n_points: int
+    point: np.ndarray    # (K,) point index of each local term
+    block: np.ndarray    # (K,) owned dof block
+    weight: np.ndarray   # (K,) barycentric weight
+    X: np.ndarray        # (K, 3) rest position of the block
+
+    @classmethod
+    def build(cls, domain: Domain, landmarks: list[Landmark]) -> "PointOperator":
+        owned = domain.input_index[:domain.n_owned]
+        order = np.argsort(owned)
+        pts, blocks, ws = [], [], []
+        for i, lm in enumerate(landmarks):
+            for v, w in zip(lm.facet, lm.weights):
+                j = np.searchsorted(owned, v, sorter=order)
+                if j < len(owned) and owned[order[j]] == v:
+                    pts.append(i)
+                    blocks.append(order[j])
+                    ws.append(w)
+        block = np.array(blocks, dtype=np.int32)
+        return cls(domain.comm, len(landmarks), np.array(pts, dtype=np.int32), block,
+                   np.array(ws, dtype=float), domain.X[block])
+
+    def apply(self, u_array: np.ndarray) -> np.ndarray:
+        """Deformed points (Nt, 3) mm from the local displacement array (blocked, ghosts ok)."""
+        local = np.zeros((self.n_points, 3))
+        vals = self.weight[:, None] * (self.X + u_array.reshape(-1, 3)[self.block])
+        np.add.at(local, self.point, vals)
+        return self.comm.allreduce(local, op=MPI.SUM)
+
+    def transpose_add(self, g: np.ndarray, out_array: np.ndarray) -> None:
+        """out += L^T g, for g (Nt, 3), into a local blocked array (owned part)."""
+        o = out_array.reshape(-1, 3)
+        np.add.at(o, self.block, self.weight[:, None] * g[self.point])
+
+
+def create_domain(anatomy: Anatomy | None, comm: MPI.Comm = MPI.COMM_WORLD,
+                  root: int = 0) -> Domain:
+    """Distribute ``anatomy`` (needed on ``root`` only; validated there) over ``comm``."""
+    if comm.rank == root:
+        anatomy.validate()
+        meta = dict(segments=anatomy.segments, pivots=anatomy.pivots,
+                    landmarks=anatomy.landmarks, name=anatomy.name,
+                    n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells)
+        cells, x = anatomy.cells, anatomy.points
+        facets, values = anatomy.facets, anatomy.facet_tags
+    else:
+        meta = None
+        cells, x = np.empty((0, 4), dtype=np.int64), np.empty((0, 3))
+        facets, values = np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int32)
+    meta = comm.bcast(meta, root=root)
+    domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.tetrahedron, 1))
+    mesh = dolfinx.mesh.create_mesh(comm, cells, x, domain)
+    tdim = mesh.topology.dim
+    mesh.topology.create_connectivity(tdim - 1, 0)
+    mesh.topology.create_connectivity(tdim - 1, tdim)
+    ents, vals = _cpp.io.distribute_entity_data(compat.cpp_mesh(mesh), tdim - 1, facets, values.astype(np.int32))
+    adj = _cpp.graph.AdjacencyList_int32(ents)
+    ft = dolfinx.mesh.meshtags_from_entities(mesh, tdim - 1, adj, vals.astype(np.int32))
+    V = compat.vector_space(mesh)
+    # P1: V's dofs and geometry nodes follow the same cell-local vertex order
+    gdofs = mesh.geometry.dofmap.array.reshape(-1, 4)
+    vdofs = V.dofmap.list.array.reshape(-1, 4)
+    n_blocks = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
+    node_of_block = np.empty(n_blocks, dtype=np.int64)
+    node_of_block[vdofs.ravel()] = gdofs.ravel()
+    X = mesh.geometry.x[node_of_block, :3].copy()
+    input_index = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[node_of_block]
+    return Domain(mesh, ft, V, X, input_index, **meta)

@@ -1,0 +1,350 @@
+"""Quasi-static equilibrium x(p) = argmin E_NH(x) + k/2 |x_A - x̂_A(p)|², solved with PETSc SNES.
+
+The energy is UFL; residual f = dE/du, Jacobian K = df/du and the goal coupling df/dg come from
+``ufl.derivative``. The goal displacement of the active bone is ``g = B p`` for a blendshape
+matrix B (n_dofs, Np), so ``df/dp = (df/dg) B`` is assembled once (the penalty is quadratic).
+
+Robustness: the line search minimises the energy, which is +inf where any tetrahedron has
+det F <= 0, so inverting trial steps are rejected and no NaN is ever formed; when a Newton
+solve fails (indefinite K, KSP or line-search failure) a diagonal shift is added and raised;
+when that fails too, the step in p is bisected (continuation). `Equilibrium` keeps K and its
+factorisation/preconditioner (``self.ksp``) for adjoint and sensitivity solves.
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import dataclasses
+import logging
+import time
+
+import dolfinx
+import numpy as np
+import ufl
+
+from fem import compat
+from fem.domain import Domain
+from fem.material import NeoHookean
+from meshes.errors import InputError, SolverError
+
+log = logging.getLogger(__name__)
+
+#: Linear solver presets (PETSc options under the object's prefix); override on the command line.
+PRESETS = {
+    "direct": {"ksp_type": "preonly", "pc_type": "cholesky",
+               "pc_factor_mat_solver_type": "mumps"},
+    "cholmod": {"ksp_type": "preonly", "pc_type": "cholesky",
+                "pc_factor_mat_solver_type": "cholmod"},
+    "gamg": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 1000, "pc_type": "gamg",
+             "pc_gamg_type": "agg", "pc_gamg_agg_nsmooths": 1, "mg_levels_ksp_type": "chebyshev",
+             "mg_levels_pc_type": "jacobi", "mg_levels_ksp_chebyshev_esteig_steps": 20,
+             "ksp_norm_type": "unpreconditioned"},
+}
+#: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
+DEFAULT_PENALTY = 5000.0
+
+
+@dataclasses.dataclass
+class SolveStats:
+    """What one equilibrium solve did. Times in seconds."""
+
+    newton_iterations: int = 0
+    shifts: list = dataclasses.field(default_factory=list)
+    continuation_steps: int = 0
+    residual_history: list = dataclasses.field(default_factory=list)
+    assemble: float = 0.0
+    linear_solve: float = 0.0
+    total: float = 0.0
+
+
+class Equilibrium:
+    """Owns forms, PETSc objects and the current equilibrium of one scene.
+
+    Args:
+        domain: the distributed anatomy.
+        blendshapes: (n_local_blocks * 3, Np) goal displacement per unit parameter, mm per
+            parameter unit, nonzero only on active-segment vertices (ghosts included).
+        material: Neo-Hookean soft tissue.
+        penalty: k, kPa/mm, weight of the active-vertex penalty per unit area.
+        solver: a key of `PRESETS`; any PETSc option can be overridden with
+            ``-<prefix>ksp_type ...`` on the command line or in ``options``.
+        xtol: stop when the Newton step is below xtol (inf-norm, mm) and the residual has
+            dropped by ``frtol``.
+    """
+
+    def __init__(self, domain: Domain, blendshapes: np.ndarray, active_tags,
+                 material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
+                 solver: str = "direct", options: dict | None = None,
+                 prefix: str = "orthodiff_fwd_", xtol: float = 1e-5, frtol: float = 1e-6,
+                 max_it: int = 50, quadrature_degree: int = 2):
+        if not prefix:
+            raise ValueError("an options prefix is required")
+        if solver not in PRESETS:
+            raise InputError(f"unknown solver preset {solver!r}; choose one of {list(PRESETS)}")
+        if not (np.isfinite(penalty) and penalty > 0):
+            raise InputError(f"penalty k = {penalty} kPa/mm must be positive and finite")
+        t0 = time.perf_counter()
+        self.domain, self.material, self.penalty = domain, material, penalty
+        self.xtol, self.frtol, self.max_it = xtol, frtol, max_it
+        V = domain.V
+        self.u = dolfinx.fem.Function(V, name="displacement")
+        self._uvec = compat.petsc_vec(self.u)
+        self.goal = dolfinx.fem.Function(V, name="goal")
+        self.B = np.asarray(blendshapes, dtype=float)
+        n_local = self.u.x.array.size
+        if self.B.ndim != 2 or self.B.shape[0] != n_local:
+            raise InputError(f"blendshapes must be ({n_local}, Np), got {self.B.shape}")
+        self.n_params = self.B.shape[1]
+        v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
+        F = ufl.Identity(3) + ufl.grad(self.u)
+        ds = domain.ds()(tuple(active_tags), metadata={"quadrature_degree": quadrature_degree})
+        gap = self.u - self.goal
+        energy = material.energy_density(F) * ufl.dx + 0.5 * penalty * ufl.inner(gap, gap) * ds
+        residual = ufl.derivative(energy, self.u, v)
+        jacobian = ufl.derivative(residual, self.u, du)
+        coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant
+        self.forms = {k: compat.form(f) for k, f in dict(
+            energy=energy, residual=residual, jacobian=jacobian, coupling=coupling).items()}
+        self.bcs = domain.dirichlet_bcs()
+        self.A = compat.create_matrix(self.forms["jacobian"])
+        self.A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        self.A.setOption(PETSc.Mat.Option.SYMMETRY_ETERNAL, True)
+        self.b = compat.create_vector(self.forms["residual"])
+        self._set_near_nullspace()
+        G = compat.create_matrix(self.forms["coupling"])
+        compat.assemble_matrix(G, self.forms["coupling"])
+        G.assemble()
+        self.dfdg = G
+        self.dfdp = self._coupling_times_blendshapes()
+        self.ksp = self._make_snes(prefix, solver, options or {})
+        self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
+        self.setup_time = time.perf_counter() - t0
+        self._cells = self._cell_blocks()
+
+    # ------------------------------------------------------------------ setup helpers
+    def _coupling_times_blendshapes(self) -> list:
+        """df/dp as Np PETSc vectors (df/dg) B_i. Active and Dirichlet vertices are disjoint
+        (checked by `Anatomy.validate`), so Dirichlet rows are already zero."""
+        out = []
+        g = compat.petsc_vec(self.goal).duplicate()
+        for i in range(self.n_params):
+            with g.localForm() as gl:
+                gl.array[:] = self.B[:, i]
+            y = self.dfdg.createVecLeft()
+            self.dfdg.mult(g, y)
+            out.append(y)
+        g.destroy()
+        return out
+
+    def _set_near_nullspace(self):
+        """Rigid-body modes (3 translations, 3 rotations) for GAMG."""
+        X = self.domain.X
+        n_owned = self.domain.n_owned
+        vecs = [self.b.duplicate() for _ in range(6)]
+        x = X[:n_owned]
+        fields = [np.tile(e, (n_owned, 1)) for e in np.eye(3)]
+        fields += [np.stack([-x[:, 1], x[:, 0], 0 * x[:, 0]], 1),
+                   np.stack([0 * x[:, 0], -x[:, 2], x[:, 1]], 1),
+                   np.stack([x[:, 2], 0 * x[:, 0], -x[:, 0]], 1)]
+        for vec, f in zip(vecs, fields):
+            vec.setArray(f.ravel())
+        dolfinx.la.orthonormalize(vecs)
+        ns = PETSc.NullSpace().create(vectors=vecs, comm=self.domain.comm)
+        self.A.setNearNullSpace(ns)
+
+    def _make_snes(self, prefix: str, solver: str, options: dict):
+        snes = PETSc.SNES().create(self.domain.comm)
+        snes.setOptionsPrefix(prefix)
+        opts = PETSc.Options()
+        settings = {"snes_type": "newtonls", "snes_linesearch_type": "bt",
+                    "snes_linesearch_max_it": 40, "snes_max_linear_solve_fail": 1,
+                    **PRESETS[solver], **options}
+        for k, v in settings.items():
+            if not opts.hasName(prefix + k):  # command-line options win
+                opts[prefix + k] = v
+        snes.setFunction(self._residual, self.b)
+        snes.setJacobian(self._jacobian, self.A)
+        snes.setObjective(self._objective)
+        snes.setConvergenceTest(self._converged)
+        snes.setTolerances(max_it=self.max_it)
+        snes.setFromOptions()
+        snes.getKSP().setFromOptions()
+        self.snes, self.solver_name = snes, solver
+        for k in settings:
+            opts.delValue(prefix + k)
+        return snes.getKSP()
+
+    def _cell_blocks(self):
+        """(n_cells_local, 4) dof blocks and rest edge matrices' inverse determinants."""
+        blocks = self.domain.V.dofmap.list.array.reshape(-1, 4)
+        e = self.domain.X[blocks[:, 1:]] - self.domain.X[blocks[:, :1]]
+        return blocks, np.linalg.det(e)
+
+    # ------------------------------------------------------------------ SNES callbacks
+    def _set_state(self, x):
+        if x.handle != self._uvec.handle:
+            x.copy(self._uvec)
+        self._uvec.ghostUpdate(PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
+
+    def min_det_F(self) -> float:
+        """Smallest det F over all cells of the current displacement (collective)."""
+        blocks, det0 = self._cells
+        x = self.domain.X + self.u.x.array.reshape(-1, 3)
+        det = np.linalg.det(x[blocks[:, 1:]] - x[blocks[:, :1]]) / det0
+        local = det.min() if len(det) else np.inf
+        return self.domain.comm.allreduce(local, op=MPI.MIN)
+
+    def _objective(self, snes, x):
+        t = time.perf_counter()
+        self._set_state(x)
+        if not self.min_det_F() > 0:   # inverted or NaN state: reject
+            val = np.inf
+        else:
+            val = self.domain.comm.allreduce(
+                dolfinx.fem.assemble_scalar(self.forms["energy"]), op=MPI.SUM)
+            if not np.isfinite(val):
+                val = np.inf
+        self._stats.assemble += time.perf_counter() - t
+        return val
+
+    def _residual(self, snes, x, b):
+        t = time.perf_counter()
+        self._set_state(x)
+        with b.localForm() as bl:
+            bl.set(0.0)
+        compat.assemble_vector(b, self.forms["residual"])
+        b.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        compat.set_bc(b, self.bcs, x, -1.0)
+        self._stats.assemble += time.perf_counter() - t
+
+    def _jacobian(self, snes, x, A, P):
+        t = time.perf_counter()
+        self._set_state(x)
+        A.zeroEntries()
+        compat.assemble_matrix(A, self.forms["jacobian"], self.bcs, 1.0)
+        A.assemble()
+        if self._shift > 0:
+            A.shift(self._shift)
+        self._stats.assemble += time.perf_counter() - t
+
+    def _converged(self, snes, it, norms):
+        xnorm, ynorm, fnorm = norms
+        self._stats.residual_history.append(fnorm)
+        if not np.isfinite(fnorm):
+            return PETSc.SNES.ConvergedReason.DIVERGED_FNORM_NAN
+        if it == 0:
+            self._f0 = fnorm
+            self._x_prev = snes.getSolution().copy()
+            return 0 if fnorm > 1e-14 else PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
+        x = snes.getSolution()
+        self._x_prev.axpy(-1.0, x)
+        step = self._x_prev.norm(PETSc.NormType.INFINITY)
+        x.copy(self._x_prev)
+        if fnorm <= 1e-14 * max(1.0, self._f0):
+            return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
+        if step <= self.xtol and fnorm <= self.frtol * self._f0:
+            return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
+        if it >= self.max_it:
+            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
+        return 0
+
+    # ------------------------------------------------------------------ solves
+    def set_params(self, p) -> np.ndarray:
+        """Validate p (Np,) and set the goal field g = B p."""
+        p = np.asarray(p, dtype=float).reshape(-1)
+        if p.shape != (self.n_params,):
+            raise InputError(f"expected {self.n_params} parameters, got {p.size}")
+        if not np.all(np.isfinite(p)):
+            raise InputError(f"parameters must be finite, got {p.tolist()}")
+        self.goal.x.array[:] = self.B @ p
+        return p
+
+    def solve(self, p, max_bisections: int = 6, shift_max: float = 1e3) -> SolveStats:
+        """Equilibrium at parameters p (Np,), warm-started from the current one.
+
+        Returns `SolveStats`; raises `SolverError` when even continuation fails, leaving the
+        last good equilibrium in place.
+        """
+        p = np.asarray(p, dtype=float).reshape(-1)
+        self.set_params(p)  # validates
+        self._stats = SolveStats()
+        t0 = time.perf_counter()
+        p_done = self.p.copy()
+        u_good = self._uvec.copy()
+        todo = [p]
+        depth = 0
+        while todo:
+            p_next = todo[-1]
+            try:
+                self._newton(p_next, shift_max)
+            except SolverError:
+                self._uvec.array[:] = u_good.array_r
+                self._set_state(self._uvec)
+                depth += 1
+                if depth > max_bisections:
+                    self.set_params(p_done)
+                    raise SolverError(
+                        f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
+                        f"{max_bisections} bisections; the largest step reached is p = "
+                        f"{np.round(p_done, 4).tolist()}") from None
+                todo.append(0.5 * (p_done + p_next))
+                self._stats.continuation_steps += 1
+                log.info("continuation: bisecting to p = %s", todo[-1])
+                continue
+            todo.pop()
+            p_done = p_next
+            u_good.destroy()
+            u_good = self._uvec.copy()
+        u_good.destroy()
+        self.p = p_done
+        st = self._stats
+        st.total = time.perf_counter() - t0
+        st.linear_solve = max(st.total - st.assemble, 0.0)
+        return st
+
+    def _newton(self, p, shift_max):
+        """One SNES solve at p, raising the diagonal shift on failure."""
+        self.set_params(p)
+        diag_scale = self._diag_mean()
+        self._shift = 0.0
+        while True:
+            self.snes.solve(None, self._uvec)
+            reason = self.snes.getConvergedReason()
+            self._stats.newton_iterations += self.snes.getIterationNumber()
+            if reason > 0 and np.all(np.isfinite(self.u.x.array)):
+                break
+            if self._shift >= shift_max * diag_scale:
+                self._shift = 0.0
+                raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
+            self._shift = 1e-3 * diag_scale if self._shift == 0 else 10 * self._shift
+            self._stats.shifts.append(self._shift)
+            log.info("SNES reason %d: diagonal shift %.3g", reason, self._shift)
+        self.u.x.scatter_forward()
+        if self._shift > 0:   # keep K itself, not the shifted matrix, for later solves
+            self._shift = 0.0
+            self._jacobian(self.snes, self._uvec, self.A, self.A)
+            self.ksp.setOperators(self.A)
+
+    def _diag_mean(self) -> float:
+        if not hasattr(self, "_diag_scale"):
+            self._shift = 0.0
+            self._jacobian(self.snes, self._uvec, self.A, self.A)
+            d = self.A.getDiagonal()
+            self._diag_scale = d.norm(PETSc.NormType.NORM_1) / d.getSize()
+            d.destroy()
+        return self._diag_scale
+
+    # ------------------------------------------------------------------ outputs
+    def active_goal_error(self) -> float:
+        """max over active vertices of |u - g|, mm (collective)."""
+        gap = (self.u.x.array - self.goal.x.array).reshape(-1, 3)
+        n = self.domain.n_owned
+        active = np.any(self.B.reshape(-1, 3, self.n_params)[:n] != 0, axis=(1, 2))
+        local = np.linalg.norm(gap[:n][active], axis=1).max(initial=0.0)
+        return self.domain.comm.allreduce(local, op=MPI.MAX)
+
+    def destroy(self):
+        for obj in [self.snes, self.A, self.b, self.dfdg, *self.dfdp]:
+            obj.destroy()

@@ -1,0 +1,230 @@
+"""The `Anatomy` dataclass: a tetrahedral soft-tissue mesh with tags, segments and landmarks.
+
+Everything downstream (``fem``, ``inverse``) consumes an `Anatomy`. It is plain numpy data held
+on one rank; ``fem.domain`` distributes it. Lengths are in mm, frame x = patient's left,
+y = anterior, z = superior, mid-sagittal plane x = 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from meshes.errors import MeshError
+
+#: Facet tag values of the boundary roles. Segment tags are ``SEGMENT_TAG0 + i``.
+SKIN, FIXED, FREE_BONE, RIM = 1, 2, 3, 4
+SEGMENT_TAG0 = 11
+ROLE_NAMES = {SKIN: "skin", FIXED: "fixed", FREE_BONE: "free_bone", RIM: "rim"}
+#: Facets held by a Dirichlet condition (u = 0).
+DIRICHLET_TAGS = (FIXED, RIM)
+#: Landmarks every built-in case provides (issue 3, DESIGN.md naming).
+STANDARD_LANDMARKS = ("N", "Prn", "Sn", "Ls", "Li", "Pg", "Me", "T_L", "T_R")
+#: Relative tolerance on tet volumes, against the mean volume, below which a cell is degenerate.
+DEGENERATE_VOLUME_RTOL = 1e-10
+
+
+@dataclasses.dataclass
+class Landmark:
+    """A point on the skin: a skin facet (3 vertex indices) and barycentric weights (3,)."""
+
+    facet: np.ndarray
+    weights: np.ndarray
+
+    def position(self, points: np.ndarray) -> np.ndarray:
+        """Position (3,) mm, given vertex positions ``points`` (N, 3)."""
+        return self.weights @ points[self.facet]
+
+
+@dataclasses.dataclass
+class Anatomy:
+    """A soft-tissue tet mesh between bone (inside) and skin (outside).
+
+    Attributes:
+        points: (N, 3) vertex positions, mm.
+        cells: (M, 4) vertex indices of positively oriented tetrahedra.
+        facets: (F, 3) vertex indices of tagged boundary facets.
+        facet_tags: (F,) tag per facet: SKIN, FIXED, FREE_BONE, RIM or a segment tag.
+        segments: segment name -> facet tag (e.g. ``{"mandible": 11}``).
+        pivots: segment name -> (3,) pivot of its rigid motions, mm.
+        landmarks: landmark name -> `Landmark` on a skin facet.
+        name: case name or source file, for reports.
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    facets: np.ndarray
+    facet_tags: np.ndarray
+    segments: dict[str, int]
+    pivots: dict[str, np.ndarray]
+    landmarks: dict[str, Landmark]
+    name: str = "anatomy"
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.cells)
+
+    def landmark_positions(self, names=None) -> dict[str, np.ndarray]:
+        """Rest positions {name: (3,)} mm of the named landmarks (all if None)."""
+        names = list(self.landmarks) if names is None else names
+        return {n: self.landmarks[n].position(self.points) for n in names}
+
+    def segment_vertices(self, name: str) -> np.ndarray:
+        """Sorted vertex indices on the facets of segment ``name``."""
+        return np.unique(self.facets[self.facet_tags == self.segments[name]])
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> "Anatomy":
+        """Check geometry, tags and landmarks; orient cells positively. Raises `MeshError`."""
+        p, c = np.asarray(self.points, float), np.asarray(self.cells)
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4:
+            raise MeshError(f"points must be an (N>=4, 3) array, got shape {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise MeshError(f"{np.sum(~np.isfinite(p).all(1))} vertices have NaN/inf coordinates")
+        if c.ndim != 2 or c.shape[1] != 4 or len(c) == 0:
+            raise MeshError(f"cells must be tetrahedra, an (M, 4) array; got shape {c.shape}")
+        if c.min() < 0 or c.max() >= len(p):
+            raise MeshError("cells index vertices that do not exist")
+        if np.any(np.sort(c, axis=1)[:, 1:] == np.sort(c, axis=1)[:, :-1]):
+            raise MeshError("some cells repeat a vertex")
+        if len(np.unique(np.sort(c, axis=1), axis=0)) != len(c):
+            raise MeshError("the mesh has duplicate cells")
+        vol = signed_volumes(p, c)
+        tiny = np.abs(vol) <= DEGENERATE_VOLUME_RTOL * np.abs(vol).mean()
+        if tiny.any():
+            raise MeshError(f"{tiny.sum()} degenerate (zero-volume) tetrahedra, e.g. cell "
+                            f"{np.flatnonzero(tiny)[0]}; repair or remesh the input")
+        neg = vol < 0
+        if neg.any() and not neg.all():
+            raise MeshError(f"{min(neg.sum(), (~neg).sum())} of {len(c)} tetrahedra are inverted "
+                            f"relative to the others, e.g. cell "
+                            f"{np.flatnonzero(neg if neg.sum() < len(c) / 2 else ~neg)[0]}")
+        if neg.all():
+            c = c[:, [0, 2, 1, 3]]
+        self.points, self.cells = p, c.astype(np.int64)
+        self._validate_tags()
+        self._validate_landmarks()
+        return self
+
+    def _validate_tags(self):
+        f = np.asarray(self.facets, dtype=np.int64)
+        t = np.asarray(self.facet_tags, dtype=np.int32)
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) != len(t):
+            raise MeshError(f"facets must be (F, 3) with one tag each; got {f.shape}, {t.shape}")
+        boundary = {tuple(r) for r in boundary_facets(self.cells)}
+        off = [i for i, r in enumerate(np.sort(f, axis=1)) if tuple(r) not in boundary]
+        if off:
+            raise MeshError(f"{len(off)} tagged facets are not on the mesh boundary, "
+                            f"e.g. vertices {f[off[0]].tolist()}")
+        need = {"skin": SKIN, "fixed bone (Dirichlet)": FIXED}
+        for what, tag in need.items():
+            if not np.any(t == tag):
+                raise MeshError(f"no facets tagged {what} (tag {tag}); the mesh needs tags for "
+                                "skin, fixed bone and at least one active segment")
+        if not self.segments:
+            raise MeshError("no active bone segment is defined")
+        for name, tag in self.segments.items():
+            if not np.any(t == tag):
+                raise MeshError(f"segment {name!r} (tag {tag}) has no facets")
+            if name not in self.pivots:
+                self.pivots[name] = self.points[self.segment_vertices(name)].mean(axis=0)
+        fixed = np.unique(f[np.isin(t, DIRICHLET_TAGS)])
+        for name in self.segments:
+            both = np.intersect1d(fixed, self.segment_vertices(name))
+            if len(both):
+                raise MeshError(f"segment {name!r} shares {len(both)} vertices with fixed bone; "
+                                "leave a free band of bone between them")
+        self.facets, self.facet_tags = f, t
+
+    def _validate_landmarks(self):
+        skin = {tuple(r) for r in np.sort(self.facets[self.facet_tags == SKIN], axis=1)}
+        for name, lm in self.landmarks.items():
+            w = np.asarray(lm.weights, float)
+            if w.shape != (3,) or not np.all(np.isfinite(w)) or np.any(w < -1e-9) \
+                    or abs(w.sum() - 1) > 1e-9:
+                raise MeshError(f"landmark {name!r}: barycentric weights {w} must be >= 0, sum 1")
+            if tuple(np.sort(lm.facet)) not in skin:
+                raise MeshError(f"landmark {name!r} is off the skin: its facet "
+                                f"{np.asarray(lm.facet).tolist()} is not a skin facet")
+
+    # ------------------------------------------------------------------ storage
+    def save(self, path: str | Path) -> None:
+        """Write to ``path`` (.npz) atomically."""
+        meta = {"segments": self.segments, "name": self.name,
+                "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
+                "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
+                              for k, v in self.landmarks.items()}}
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.part")
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, points=self.points, cells=self.cells, facets=self.facets,
+                     facet_tags=self.facet_tags, meta=json.dumps(meta))
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Anatomy":
+        """Read an anatomy written by `save`; raises `MeshError` if unreadable."""
+        try:
+            with np.load(path) as d:
+                meta = json.loads(str(d["meta"]))
+                return cls(points=d["points"], cells=d["cells"], facets=d["facets"],
+                           facet_tags=d["facet_tags"], segments=meta["segments"],
+                           pivots={k: np.array(v) for k, v in meta["pivots"].items()},
+                           landmarks={k: Landmark(np.array(f), np.array(w))
+                                      for k, (f, w) in meta["landmarks"].items()},
+                           name=meta["name"])
+        except (OSError, KeyError, ValueError) as e:
+            raise MeshError(f"cannot read anatomy file {path}: {e}") from e
+
+
+def signed_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Signed volumes (M,) mm^3 of tetrahedra ``cells`` (M, 4) over ``points`` (N, 3)."""
+    a = points[cells[:, 1:]] - points[cells[:, :1]]
+    return np.linalg.det(a) / 6.0
+
+
+def boundary_facets(cells: np.ndarray) -> np.ndarray:
+    """Sorted vertex triples (B, 3) of facets that belong to exactly one tetrahedron."""
+    faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    uniq, count = np.unique(faces, axis=0, return_counts=True)
+    return uniq[count == 1]
+
+
+def intersect_rays(points: np.ndarray, tris: np.ndarray, origin, direction):
+    """Farthest hit of a ray with triangles (Moller-Trumbore).
+
+    Args:
+        points: (N, 3) vertices; tris: (T, 3) triangle vertex indices.
+        origin, direction: (3,) ray start and direction.
+
+    Returns:
+        (triangle index, barycentric weights (3,)) of the hit farthest along the ray,
+        or None when the ray misses.
+    """
+    o, d = np.asarray(origin, float), np.asarray(direction, float)
+    v0, v1, v2 = (points[tris[:, i]] for i in range(3))
+    e1, e2 = v1 - v0, v2 - v0
+    pv = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, pv)
+    ok = np.abs(det) > 1e-14
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = o - v0
+    u = np.einsum("ij,ij->i", tv, pv) * inv
+    qv = np.cross(tv, e1)
+    v = (qv @ d) * inv
+    t = np.einsum("ij,ij->i", e2, qv) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    if not hit.any():
+        return None
+    i = np.flatnonzero(hit)[np.argmax(t[hit])]
+    return int(i), np.array([1 - u[i] - v[i], u[i], v[i]])

@@ -1,0 +1,267 @@
+"""A parametric, anatomically plausible lower face built with gmsh (OpenCASCADE).
+
+Bone and skin are unions of ellipsoids. The skin primitives are the bone primitives grown by a
+soft-tissue thickness, plus nose, lips and cheeks. The soft tissue is (skin ∩ face mask) − bone:
+a hollow shell whose inner surface is bone and outer surface is skin; the face mask cuts it
+behind the tragion (y = -12 mm) and above the nasion (z = 50 mm), and those cut faces are the
+"rim", held fixed like the skull.
+
+The bone surface is split by three surgical planes (rest geometry):
+
+* LeFort I cut at ``z = Z_LEFORT``; the maxilla below it is split at the midline (two segments);
+* occlusal plane at ``z = Z_OCCLUSAL`` (+ the case's vertical mandible offset);
+* BSSO cut at ``y = Y_BSSO``: the mandible anterior to it is the distal (moving) segment.
+
+Bone within ``BAND_MM / 2`` of any cut is left free (elevated periosteum): a moving segment that
+directly borders fixed bone makes the Jacobian indefinite (DESIGN.md, measured). Cases differ
+in the position and yaw of the mandible (and a little of the maxilla).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from meshes.anatomy import (FIXED, FREE_BONE, RIM, SEGMENT_TAG0, SKIN, Anatomy, Landmark,
+                            boundary_facets, intersect_rays, signed_volumes)
+from meshes.errors import InputError, MeshError
+
+log = logging.getLogger(__name__)
+
+GENERATOR_VERSION = 1
+Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM = -6.0, -38.0, 20.0, 10.0
+Y_MASK, Z_MASK = -12.0, 50.0
+#: Target edge length (mm) per resolution; vertex counts are measured in BENCHMARKS.md.
+RESOLUTIONS = {"tiny": 8.0, "coarse": 5.5, "medium": 4.0, "paper": 2.3, "fine": 1.4}
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """A malocclusion preset: mandible offset (mm) and yaw (degrees), maxilla offset (mm)."""
+
+    description: str
+    mandible_shift: tuple = (0.0, 0.0, 0.0)
+    mandible_yaw_deg: float = 0.0
+    maxilla_shift: tuple = (0.0, 0.0, 0.0)
+
+
+CASES = {
+    "class1": Case("neutral occlusion"),
+    "class2": Case("Angle class II: retruded mandible", (0.0, -7.0, 2.0)),
+    "class3": Case("Angle class III: prognathic mandible, slightly retruded maxilla",
+                   (0.0, 7.0, -2.0), 0.0, (0.0, -2.0, 0.0)),
+    "class3-asym": Case("class III with the chin deviated to the right (mandible shifted and yawed)",
+                        (4.0, 6.0, -2.0), 6.0, (0.0, -2.0, 0.0)),
+}
+MANDIBLE_PIVOT = np.array([0.0, 0.0, -40.0])  # yaw axis of the malocclusion: between condyles
+
+
+@dataclasses.dataclass(frozen=True)
+class Ellipsoid:
+    """Ellipsoid with centre c (mm), semi-axes r (mm) and rotation R (3x3, local -> world)."""
+
+    c: np.ndarray
+    r: np.ndarray
+    R: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))
+
+    def grown(self, t: float) -> "Ellipsoid":
+        return Ellipsoid(self.c, self.r + t, self.R)
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        """Approximate signed distance (K,) of points p (K, 3): < 0 inside."""
+        q = (p - self.c) @ self.R / self.r
+        return (np.linalg.norm(q, axis=1) - 1.0) * self.r.min()
+
+
+def _rot(axis, deg):
+    """Rotation matrix about a unit axis by deg degrees."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    t = np.deg2rad(deg)
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+
+
+def _primitives(case: Case):
+    """(bone ellipsoids with tissue thickness, extra skin ellipsoids, mandible transform)."""
+    E = lambda c, r, R=np.eye(3): Ellipsoid(np.array(c, float), np.array(r, float), R)  # noqa
+    Ry = _rot((0, 0, 1), case.mandible_yaw_deg)
+    mand = lambda c: MANDIBLE_PIVOT + Ry @ (np.array(c) - MANDIBLE_PIVOT) + case.mandible_shift  # noqa
+    maxi = lambda c: np.array(c) + case.maxilla_shift  # noqa
+    bone = [(E((0, 0, 25), (68, 88, 75)), 6.0),                      # cranium and midface
+            (E(maxi((0, 52, -20)), (30, 33, 17)), 14.0),             # maxilla
+            # the body is nearly round in plan view: yaw moves its centre only (a yawed
+            # BSpline ellipsoid here breaks OCC's boolean fuse; the volume check catches that)
+            (E(mand((0, 40, -55)), (46, 42, 17)), 12.0),         # mandible body
+            (E(mand((0, 78, -64)), (13, 7, 11), Ry), 10.0),          # chin
+            (E((46, 8, -25), (8, 14, 30)), 16.0),                    # rami (stay put)
+            (E((-46, 8, -25), (8, 14, 30)), 16.0)]
+    skin = [E((0, 100, 8), (10, 12, 26), _rot((1, 0, 0), -20)),      # nasal dorsum
+            E((0, 112, -8), (9, 8, 8)),                              # nose tip
+            E(maxi((0, 91, -31)), (24, 10, 8)),                      # upper lip
+            E(mand((0, 89, -45)), (22, 10, 7), Ry),                  # lower lip
+            E((42, 48, -12), (22, 25, 25)), E((-42, 48, -12), (22, 25, 25))]  # cheeks
+    return bone, skin, mand, Ry
+
+
+def _landmark_rays(case: Case):
+    """name -> (origin, direction): the landmark is the outermost skin hit of the ray."""
+    _, _, mand, Ry = _primitives(case)
+    fwd = Ry @ np.array([0, 1.0, 0])
+    return {"N": ((0, 0, 40), (0, 1, 0)), "Prn": ((0, 0, -8), (0, 1, 0)),
+            "Sn": ((0, 0, -19), (0, 1, 0)), "Ls": (np.add((0, 0, -31), case.maxilla_shift),
+                                                   (0, 1, 0)),
+            "Li": (mand((0, 0, -45)), fwd), "Pg": (mand((0, 40, -64)), fwd),
+            "Me": (mand((0, 72, -55)), (0, 0, -1)),
+            "T_L": ((0, 0, 10), (1, 0, 0)), "T_R": ((0, 0, 10), (-1, 0, 0))}
+
+
+def _gmsh_tissue(case: Case, h: float):
+    """Mesh the soft tissue with gmsh; returns points (N, 3) and tets (M, 4)."""
+    import gmsh
+
+    bone, skin_extra, _, _ = _primitives(case)
+    gmsh.initialize(["-noenv"] if hasattr(gmsh, "initialize") else [])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)  # deterministic
+        occ = gmsh.model.occ
+
+        def add(e: Ellipsoid):
+            s = occ.addSphere(0, 0, 0, 1.0)
+            occ.dilate([(3, s)], 0, 0, 0, *e.r)
+            ang = np.arccos(np.clip((np.trace(e.R) - 1) / 2, -1, 1))
+            if ang > 1e-12:
+                ax = np.array([e.R[2, 1] - e.R[1, 2], e.R[0, 2] - e.R[2, 0], e.R[1, 0] - e.R[0, 1]])
+                occ.rotate([(3, s)], 0, 0, 0, *ax, ang)
+            occ.translate([(3, s)], *e.c)
+            return (3, s)
+
+        skin = [add(b.grown(t)) for b, t in bone] + [add(e) for e in skin_extra]
+        bones = [add(b) for b, _ in bone]
+        skin_u, _ = occ.fuse(skin[:1], skin[1:])
+        bone_u, _ = occ.fuse(bones[:1], bones[1:])
+        box = occ.addBox(-150, Y_MASK, -200, 300, 300, 200 + Z_MASK)
+        mask, _ = occ.intersect(skin_u, [(3, box)])
+        occ.cut(mask, bone_u)
+        occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * h)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay: deterministic
+        gmsh.option.setNumber("Mesh.Optimize", 1)
+        gmsh.model.mesh.generate(3)
+        tags, x, _ = gmsh.model.mesh.getNodes()
+        _, conn = gmsh.model.mesh.getElementsByType(4)
+    finally:
+        gmsh.finalize()
+    index = np.zeros(int(tags.max()) + 1, dtype=np.int64)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    cells = index[conn.astype(np.int64)].reshape(-1, 4)
+    used = np.unique(cells)  # drop nodes of lower-dimensional entities not in any tet
+    remap = -np.ones(len(tags), dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return x.reshape(-1, 3)[used], remap[cells]
+
+
+def classify_bone(mid: np.ndarray, case: Case) -> np.ndarray:
+    """Facet tags (K,) of bone facets with midpoints ``mid`` (K, 3) from the surgical planes."""
+    x, y, z = mid.T
+    z_occ = Z_OCCLUSAL + case.mandible_shift[2]
+    b = BAND_MM / 2
+    tags = np.full(len(mid), FIXED, dtype=np.int32)
+    near = (np.abs(z - Z_LEFORT) < b) | (np.abs(y - Y_BSSO) < b) | \
+           ((np.abs(z - z_occ) < b) & (y > Y_BSSO))
+    front = y > Y_BSSO
+    tags[front & (z < z_occ)] = SEGMENT_TAG0                              # mandible
+    maxilla = front & (z >= z_occ) & (z < Z_LEFORT)
+    tags[maxilla & (x >= 0)] = SEGMENT_TAG0 + 1                           # maxilla_L
+    tags[maxilla & (x < 0)] = SEGMENT_TAG0 + 2                            # maxilla_R
+    tags[near | (maxilla & (np.abs(x) < b))] = FREE_BONE
+    return tags
+
+
+def build(case_name: str, resolution: str) -> Anatomy:
+    """Generate (no cache) the synthetic anatomy for a case and resolution."""
+    case, h = _check(case_name, resolution)
+    points, cells = _gmsh_tissue(case, h)
+    facets = boundary_facets(cells)
+    mid = points[facets].mean(axis=1)
+    bone, _, _, _ = _primitives(case)
+    d_bone = np.min([e.distance(mid) for e, _ in bone], axis=0)
+    d_skin = np.min([e.grown(t).distance(mid) for e, t in bone]
+                    + [e.distance(mid) for e in _primitives(case)[1]], axis=0)
+    tags = np.full(len(facets), SKIN, dtype=np.int32)
+    is_bone = np.abs(d_bone) < np.abs(d_skin)
+    tags[is_bone] = classify_bone(mid[is_bone], case)
+    rim = (np.abs(mid[:, 1] - Y_MASK) < 1e-6) | (np.abs(mid[:, 2] - Z_MASK) < 1e-6)
+    tags[rim] = RIM
+    segments = {"mandible": SEGMENT_TAG0, "maxilla_L": SEGMENT_TAG0 + 1,
+                "maxilla_R": SEGMENT_TAG0 + 2}
+    skin_idx = np.flatnonzero(tags == SKIN)
+    landmarks = {}
+    for name, (o, d) in _landmark_rays(case).items():
+        hit = intersect_rays(points, facets[skin_idx], o, d)
+        if hit is None:
+            raise MeshError(f"landmark {name} ray missed the skin of case {case_name}")
+        landmarks[name] = Landmark(facets[skin_idx[hit[0]]], hit[1])
+    _check_volume(case, points, cells, case_name)
+    anatomy = Anatomy(points, cells, facets, tags, segments, {}, landmarks,
+                      name=f"{case_name}/{resolution}")
+    anatomy.validate()
+    # pivots: the centroid of each segment's rest bone vertices
+    anatomy.pivots = {s: points[anatomy.segment_vertices(s)].mean(axis=0) for s in segments}
+    return anatomy
+
+
+def _check_volume(case: Case, points, cells, case_name: str, grid_mm: float = 2.0):
+    """Compare the meshed volume with the implicit (skin ∩ mask) − bone sampled on a grid.
+
+    OpenCASCADE booleans on BSpline ellipsoids can silently drop a primitive; this catches it.
+    """
+    bone, extra, _, _ = _primitives(case)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    axes = [np.arange(a + grid_mm / 2, b, grid_mm) for a, b in zip(lo, hi)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside_skin = np.min([e.grown(t).distance(g) for e, t in bone]
+                         + [e.distance(g) for e in extra], axis=0) < 0
+    inside_bone = np.min([e.distance(g) for e, _ in bone], axis=0) < 0
+    in_mask = (g[:, 1] > Y_MASK) & (g[:, 2] < Z_MASK)
+    expected = np.sum(inside_skin & ~inside_bone & in_mask) * grid_mm ** 3
+    meshed = np.abs(signed_volumes(points, cells)).sum()
+    if abs(meshed - expected) > 0.05 * expected:
+        raise MeshError(f"gmsh produced {meshed:.0f} mm^3 of tissue for case {case_name}, "
+                        f"expected {expected:.0f} mm^3: a boolean operation failed")
+
+
+def _check(case_name: str, resolution: str):
+    if case_name not in CASES:
+        raise InputError(f"unknown case {case_name!r}; choose one of {sorted(CASES)}")
+    if resolution not in RESOLUTIONS:
+        raise InputError(f"unknown resolution {resolution!r}; choose one of {list(RESOLUTIONS)}")
+    return CASES[case_name], RESOLUTIONS[resolution]
+
+
+def cache_dir() -> Path:
+    """Folder of cached meshes: ``$ORTHODIFF_CACHE`` or ``~/.cache/orthodiff``."""
+    return Path(os.environ.get("ORTHODIFF_CACHE", Path.home() / ".cache" / "orthodiff"))
+
+
+def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -> Anatomy:
+    """The synthetic anatomy of a case at a resolution, from the disk cache when present."""
+    case, h = _check(case_name, resolution)
+    key = hashlib.sha1(repr((GENERATOR_VERSION, case, h, Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM))
+                       .encode()).hexdigest()[:12]
+    path = cache_dir() / f"{case_name}-{resolution}-{key}.npz"
+    if path.exists():
+        try:
+            return Anatomy.load(path)
+        except MeshError:
+            log.warning("cached mesh %s is unreadable; regenerating", path)
+    log.info("generating %s/%s (h = %.1f mm) into %s", case_name, resolution, h, path)
+    anatomy = build(case_name, resolution)
+    anatomy.save(path)
+    return anatomy
