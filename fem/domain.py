@@ -135,7 +135,8 @@ def create_domain(anatomy: Anatomy | None, comm: MPI.Comm = MPI.COMM_WORLD,
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim - 1, 0)
     mesh.topology.create_connectivity(tdim - 1, tdim)
-    ents, vals = _cpp.io.distribute_entity_data(compat.cpp_mesh(mesh), tdim - 1, facets, values.astype(np.int32))
+    ents, vals = _cpp.io.distribute_entity_data(compat.cpp_mesh(mesh), tdim - 1, facets,
+                                                values.astype(np.int32))
     adj = _cpp.graph.AdjacencyList_int32(ents)
     ft = dolfinx.mesh.meshtags_from_entities(mesh, tdim - 1, adj, vals.astype(np.int32))
     V = compat.vector_space(mesh)

@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 #: Linear solver presets (PETSc options under the object's prefix); override on the command line.
 PRESETS = {
     "direct": {"ksp_type": "preonly", "pc_type": "cholesky",
-               "pc_factor_mat_solver_type": "mumps"},
+               "pc_factor_mat_solver_type": "mumps", "mat_mumps_icntl_13": 1,
+               "mat_mumps_icntl_24": 1},  # inertia (negative pivots) in parallel
     "cholmod": {"ksp_type": "preonly", "pc_type": "cholesky",
                 "pc_factor_mat_solver_type": "cholmod"},
     "gamg": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 1000, "pc_type": "gamg",
@@ -55,6 +56,7 @@ class SolveStats:
     continuation_steps: int = 0
     residual_history: list = dataclasses.field(default_factory=list)
     assemble: float = 0.0
+    factor: float = 0.0
     linear_solve: float = 0.0
     total: float = 0.0
 
@@ -78,7 +80,7 @@ class Equilibrium:
                  material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
                  solver: str = "direct", options: dict | None = None,
                  prefix: str = "orthodiff_fwd_", xtol: float = 1e-5, frtol: float = 1e-6,
-                 max_it: int = 50, quadrature_degree: int = 2):
+                 max_it: int = 50, shift_max: float = 1e4, quadrature_degree: int = 2):
         if not prefix:
             raise ValueError("an options prefix is required")
         if solver not in PRESETS:
@@ -91,6 +93,7 @@ class Equilibrium:
         V = domain.V
         self.u = dolfinx.fem.Function(V, name="displacement")
         self._uvec = compat.petsc_vec(self.u)
+        self._x = self._uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
         self.goal = dolfinx.fem.Function(V, name="goal")
         self.B = np.asarray(blendshapes, dtype=float)
         n_local = self.u.x.array.size
@@ -118,6 +121,8 @@ class Equilibrium:
         G.assemble()
         self.dfdg = G
         self.dfdp = self._coupling_times_blendshapes()
+        self.shift_max = shift_max
+        self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
         self.ksp = self._make_snes(prefix, solver, options or {})
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         self.setup_time = time.perf_counter() - t0
@@ -155,26 +160,39 @@ class Equilibrium:
         self.A.setNearNullSpace(ns)
 
     def _make_snes(self, prefix: str, solver: str, options: dict):
+        """SNES newtonls + energy line search; preset options under ``prefix`` (the command
+        line wins), applied with setFromOptions and then removed from the global database."""
         snes = PETSc.SNES().create(self.domain.comm)
         snes.setOptionsPrefix(prefix)
         opts = PETSc.Options()
         settings = {"snes_type": "newtonls", "snes_linesearch_type": "bt",
                     "snes_linesearch_max_it": 40, "snes_max_linear_solve_fail": 1,
                     **PRESETS[solver], **options}
-        for k, v in settings.items():
-            if not opts.hasName(prefix + k):  # command-line options win
-                opts[prefix + k] = v
+        mine = [k for k in settings if not opts.hasName(prefix + k)]
+        for k in mine:
+            opts[prefix + k] = settings[k]
         snes.setFunction(self._residual, self.b)
         snes.setJacobian(self._jacobian, self.A)
         snes.setObjective(self._objective)
         snes.setConvergenceTest(self._converged)
         snes.setTolerances(max_it=self.max_it)
         snes.setFromOptions()
-        snes.getKSP().setFromOptions()
-        self.snes, self.solver_name = snes, solver
-        for k in settings:
+        ksp = snes.getKSP()
+        ksp.setOperators(self.A)
+        pc = ksp.getPC()
+        self._check_inertia = pc.getType() == "cholesky" and \
+            pc.getFactorSolverType() == "mumps"
+        if self._check_inertia:
+            # MUMPS reads its options at factorisation time, after they are removed: set them
+            pc.setFactorSetUpSolverType()
+            factor = pc.getFactorMatrix()
+            for k, v in settings.items():
+                if k.startswith("mat_mumps_icntl_"):
+                    factor.setMumpsIcntl(int(k.rsplit("_", 1)[1]), int(opts.getInt(prefix + k)))
+        for k in mine:
             opts.delValue(prefix + k)
-        return snes.getKSP()
+        self.snes, self.solver_name = snes, solver
+        return ksp
 
     def _cell_blocks(self):
         """(n_cells_local, 4) dof blocks and rest edge matrices' inverse determinants."""
@@ -184,8 +202,7 @@ class Equilibrium:
 
     # ------------------------------------------------------------------ SNES callbacks
     def _set_state(self, x):
-        if x.handle != self._uvec.handle:
-            x.copy(self._uvec)
+        x.copy(self._uvec)
         self._uvec.ghostUpdate(PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
 
     def min_det_F(self) -> float:
@@ -220,14 +237,40 @@ class Equilibrium:
         self._stats.assemble += time.perf_counter() - t
 
     def _jacobian(self, snes, x, A, P):
+        """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
+        inertia is checked right after factorisation, and the shift raised until K is PD."""
         t = time.perf_counter()
         self._set_state(x)
         A.zeroEntries()
         compat.assemble_matrix(A, self.forms["jacobian"], self.bcs, 1.0)
         A.assemble()
+        if self._diag_scale is None:   # typical elastic diagonal, for shift sizes
+            d = A.getDiagonal()
+            med = np.median(d.array_r) if d.getLocalSize() else 0.0
+            self._diag_scale = self.domain.comm.allreduce(med, op=MPI.MAX)
+            d.destroy()
+        self._stats.assemble += time.perf_counter() - t
         if self._shift > 0:
             A.shift(self._shift)
-        self._stats.assemble += time.perf_counter() - t
+        if not self._check_inertia:
+            return
+        while True:
+            t = time.perf_counter()
+            self.ksp.setOperators(A)
+            self.ksp.getPC().setUp()
+            self._stats.factor += time.perf_counter() - t
+            n_neg = self.ksp.getPC().getFactorMatrix().getInertia()[0]
+            if n_neg == 0:
+                break
+            if self._shift >= self.shift_max * self._diag_scale:
+                break   # give up on PD; the line search and the caller decide
+            new = max(4 * self._shift, 1e-2 * self._diag_scale)
+            A.shift(new - self._shift)
+            self._shift = new
+            self._stats.shifts.append(new)
+            log.debug("%d negative pivots: diagonal shift %.3g", n_neg, new)
+        # let the shift decay once a step is accepted with a PD matrix
+        self._shift = 0.0 if self._shift < 0.04 * self._diag_scale else self._shift / 4
 
     def _converged(self, snes, it, norms):
         xnorm, ynorm, fnorm = norms
@@ -261,7 +304,7 @@ class Equilibrium:
         self.goal.x.array[:] = self.B @ p
         return p
 
-    def solve(self, p, max_bisections: int = 6, shift_max: float = 1e3) -> SolveStats:
+    def solve(self, p, max_bisections: int = 6) -> SolveStats:
         """Equilibrium at parameters p (Np,), warm-started from the current one.
 
         Returns `SolveStats`; raises `SolverError` when even continuation fails, leaving the
@@ -278,10 +321,9 @@ class Equilibrium:
         while todo:
             p_next = todo[-1]
             try:
-                self._newton(p_next, shift_max)
+                self._newton(p_next)
             except SolverError:
-                self._uvec.array[:] = u_good.array_r
-                self._set_state(self._uvec)
+                self._set_state(u_good)
                 depth += 1
                 if depth > max_bisections:
                     self.set_params(p_done)
@@ -304,37 +346,27 @@ class Equilibrium:
         st.linear_solve = max(st.total - st.assemble, 0.0)
         return st
 
-    def _newton(self, p, shift_max):
-        """One SNES solve at p, raising the diagonal shift on failure."""
+    def _newton(self, p):
+        """One SNES solve at p; when it fails, raise the diagonal shift and resume."""
         self.set_params(p)
-        diag_scale = self._diag_mean()
         self._shift = 0.0
+        self._uvec.copy(self._x)
         while True:
-            self.snes.solve(None, self._uvec)
+            self.snes.solve(None, self._x)
             reason = self.snes.getConvergedReason()
             self._stats.newton_iterations += self.snes.getIterationNumber()
+            self._set_state(self._x)
             if reason > 0 and np.all(np.isfinite(self.u.x.array)):
                 break
-            if self._shift >= shift_max * diag_scale:
-                self._shift = 0.0
+            if self._shift >= self.shift_max * self._diag_scale:
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
-            self._shift = 1e-3 * diag_scale if self._shift == 0 else 10 * self._shift
+            self._shift = max(10 * self._shift, 1e-2 * self._diag_scale)
             self._stats.shifts.append(self._shift)
-            log.info("SNES reason %d: diagonal shift %.3g", reason, self._shift)
-        self.u.x.scatter_forward()
-        if self._shift > 0:   # keep K itself, not the shifted matrix, for later solves
-            self._shift = 0.0
-            self._jacobian(self.snes, self._uvec, self.A, self.A)
-            self.ksp.setOperators(self.A)
-
-    def _diag_mean(self) -> float:
-        if not hasattr(self, "_diag_scale"):
-            self._shift = 0.0
-            self._jacobian(self.snes, self._uvec, self.A, self.A)
-            d = self.A.getDiagonal()
-            self._diag_scale = d.norm(PETSc.NormType.NORM_1) / d.getSize()
-            d.destroy()
-        return self._diag_scale
+            log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
+                     self.snes.getIterationNumber(), self._shift)
+        self._shift = 0.0
+        if self._stats.shifts:   # keep K itself, not a shifted matrix, for later solves
+            self._jacobian(self.snes, self._x, self.A, self.A)
 
     # ------------------------------------------------------------------ outputs
     def active_goal_error(self) -> float:
@@ -346,5 +378,5 @@ class Equilibrium:
         return self.domain.comm.allreduce(local, op=MPI.MAX)
 
     def destroy(self):
-        for obj in [self.snes, self.A, self.b, self.dfdg, *self.dfdp]:
+        for obj in [self.snes, self.A, self.b, self._x, self.dfdg, *self.dfdp]:
             obj.destroy()

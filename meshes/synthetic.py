@@ -27,8 +27,18 @@ from pathlib import Path
 
 import numpy as np
 
-from meshes.anatomy import (FIXED, FREE_BONE, RIM, SEGMENT_TAG0, SKIN, Anatomy, Landmark,
-                            boundary_facets, intersect_rays, signed_volumes)
+from meshes.anatomy import (
+    FIXED,
+    FREE_BONE,
+    RIM,
+    SEGMENT_TAG0,
+    SKIN,
+    Anatomy,
+    Landmark,
+    boundary_facets,
+    intersect_rays,
+    signed_volumes,
+)
 from meshes.errors import InputError, MeshError
 
 log = logging.getLogger(__name__)
@@ -55,7 +65,7 @@ CASES = {
     "class2": Case("Angle class II: retruded mandible", (0.0, -7.0, 2.0)),
     "class3": Case("Angle class III: prognathic mandible, slightly retruded maxilla",
                    (0.0, 7.0, -2.0), 0.0, (0.0, -2.0, 0.0)),
-    "class3-asym": Case("class III with the chin deviated to the right (mandible shifted and yawed)",
+    "class3-asym": Case("class III, chin deviated to the right (mandible shifted and yawed)",
                         (4.0, 6.0, -2.0), 6.0, (0.0, -2.0, 0.0)),
 }
 MANDIBLE_PIVOT = np.array([0.0, 0.0, -40.0])  # yaw axis of the malocclusion: between condyles
