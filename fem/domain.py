@@ -16,7 +16,7 @@ import ufl
 from dolfinx import cpp as _cpp
 
 from fem import compat
-from meshes.anatomy import DIRICHLET_TAGS, Anatomy, Landmark
+from meshes.anatomy import DIRICHLET_TAGS, Landmark
 
 
 @dataclasses.dataclass
@@ -27,7 +27,8 @@ class Domain:
         mesh: dolfinx mesh (mm); facet_tags: MeshTags on facets (meshes.anatomy tag values).
         V: P1 vector space; X: (n_local_nodes, 3) rest coordinates of V's dof blocks (mm),
         owned first, then ghosts. input_index: (n_local_nodes,) original vertex index of each
-        dof block. segments, pivots, landmarks, name: as in `Anatomy`.
+        dof block. node_of_block: (n_local_nodes,) geometry node of each dof block.
+        segments, pivots, landmarks, name, n_vertices, n_cells: as in `Anatomy`.
     """
 
     mesh: object
@@ -35,6 +36,7 @@ class Domain:
     V: object
     X: np.ndarray
     input_index: np.ndarray
+    node_of_block: np.ndarray
     segments: dict
     pivots: dict
     landmarks: dict
@@ -115,21 +117,30 @@ class PointOperator:
         np.add.at(o, self.block, self.weight[:, None] * g[self.point])
 
 
-def create_domain(anatomy: Anatomy | None, comm: MPI.Comm = MPI.COMM_WORLD,
-                  root: int = 0) -> Domain:
-    """Distribute ``anatomy`` (needed on ``root`` only; validated there) over ``comm``."""
+def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0) -> Domain:
+    """Distribute an anatomy over ``comm``.
+
+    Args:
+        source: an `Anatomy`, or a callable returning one, evaluated and validated on ``root``
+            only (other ranks may pass None). An error there is raised on every rank.
+    """
+    meta = None
+    cells, x = np.empty((0, 4), dtype=np.int64), np.empty((0, 3))
+    facets, values = np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int32)
     if comm.rank == root:
-        anatomy.validate()
-        meta = dict(segments=anatomy.segments, pivots=anatomy.pivots,
-                    landmarks=anatomy.landmarks, name=anatomy.name,
-                    n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells)
-        cells, x = anatomy.cells, anatomy.points
-        facets, values = anatomy.facets, anatomy.facet_tags
-    else:
-        meta = None
-        cells, x = np.empty((0, 4), dtype=np.int64), np.empty((0, 3))
-        facets, values = np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int32)
+        try:
+            anatomy = source() if callable(source) else source
+            anatomy.validate()
+            meta = dict(segments=anatomy.segments, pivots=anatomy.pivots,
+                        landmarks=anatomy.landmarks, name=anatomy.name,
+                        n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells)
+            cells, x = anatomy.cells, anatomy.points
+            facets, values = anatomy.facets, anatomy.facet_tags
+        except Exception as e:  # re-raised on every rank below
+            meta = e
     meta = comm.bcast(meta, root=root)
+    if isinstance(meta, Exception):
+        raise meta
     domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.tetrahedron, 1))
     mesh = dolfinx.mesh.create_mesh(comm, cells, x, domain)
     tdim = mesh.topology.dim
@@ -148,4 +159,11 @@ def create_domain(anatomy: Anatomy | None, comm: MPI.Comm = MPI.COMM_WORLD,
     node_of_block[vdofs.ravel()] = gdofs.ravel()
     X = mesh.geometry.x[node_of_block, :3].copy()
     input_index = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[node_of_block]
-    return Domain(mesh, ft, V, X, input_index, **meta)
+    return Domain(mesh, ft, V, X, input_index, node_of_block, **meta)
+
+
+def node_values(domain: Domain, block_values: np.ndarray) -> np.ndarray:
+    """Per-geometry-node array (n_nodes, 3) from per-dof-block values (n_blocks, 3)."""
+    out = np.zeros((len(domain.mesh.geometry.x), 3))
+    out[domain.node_of_block] = block_values.reshape(-1, 3)
+    return out

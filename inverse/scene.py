@@ -1,0 +1,117 @@
+"""`Scene`: the Python API. An anatomy, a treatment model and the equilibrium solver together.
+
+    scene = Scene.from_case("class3", "coarse")
+    scene.solve({"mandible.advance_mm": 5.0})
+    scene.landmarks()["Pg"]          # deformed position, mm
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+
+import time
+
+import numpy as np
+
+from fem.domain import create_domain, node_values
+from fem.equilibrium import DEFAULT_PENALTY, Equilibrium, SolveStats
+from fem.io import write_xdmf
+from fem.material import NeoHookean
+from inverse.treatment import Treatment, rigid_treatment
+from meshes.errors import InputError
+from meshes.synthetic import synthetic_head
+
+
+class Scene:
+    """A patient model ready to simulate.
+
+    Args:
+        anatomy: an `Anatomy` or a callable returning one (evaluated on rank 0 only).
+        treatment: parameters (default: six rigid motions per segment of the anatomy).
+        params_used: optional subset of parameter names to keep, in order.
+        material, penalty (kPa/mm), solver (preset name), options (PETSc options): passed to
+            `fem.equilibrium.Equilibrium`.
+    """
+
+    case: str | None = None
+    resolution: str | None = None
+
+    def __init__(self, anatomy, treatment: Treatment | None = None,
+                 params_used=None, material: NeoHookean = NeoHookean(),
+                 penalty: float = DEFAULT_PENALTY, solver: str = "direct",
+                 options: dict | None = None, comm: MPI.Comm = MPI.COMM_WORLD):
+        t0 = time.perf_counter()
+        self.domain = create_domain(anatomy, comm)
+        self.timings = {"mesh": time.perf_counter() - t0}
+        treatment = treatment or rigid_treatment(tuple(self.domain.segments))
+        self.treatment = treatment.subset(params_used) if params_used else treatment
+        t0 = time.perf_counter()
+        self.eq = Equilibrium(self.domain, self.treatment.matrix(self.domain),
+                              [self.domain.segments[s] for s in self.treatment.segments],
+                              material=material, penalty=penalty, solver=solver,
+                              options=options)
+        self.timings["compile"] = time.perf_counter() - t0
+        self._landmark_op = self.domain.point_operator(list(self.domain.landmarks))
+
+    @classmethod
+    def from_case(cls, case: str = "class3-asym", resolution: str = "coarse",
+                  comm: MPI.Comm = MPI.COMM_WORLD, **kwargs) -> "Scene":
+        """A built-in synthetic case (see `meshes.synthetic.CASES`), generated on rank 0."""
+        from meshes.synthetic import _check
+
+        _check(case, resolution)  # same error on every rank before any collective call
+        t0 = time.perf_counter()
+        scene = cls(lambda: synthetic_head(case, resolution), comm=comm, **kwargs)
+        scene.timings["mesh"] += time.perf_counter() - t0
+        scene.case, scene.resolution = case, resolution
+        return scene
+
+    @property
+    def param_names(self) -> list[str]:
+        return self.treatment.names
+
+    @property
+    def params(self) -> np.ndarray:
+        """Parameters (Np,) of the current equilibrium."""
+        return self.eq.p.copy()
+
+    def param_vector(self, p) -> np.ndarray:
+        """(Np,) from a dict ``{name: value}`` or a sequence; validated."""
+        if isinstance(p, dict):
+            return self.treatment.vector(p)
+        p = np.asarray(p, dtype=float).reshape(-1)
+        if p.size != len(self.param_names) or not np.all(np.isfinite(p)):
+            raise InputError(f"expected {len(self.param_names)} finite parameters, got {p}")
+        return p
+
+    def solve(self, p) -> SolveStats:
+        """Equilibrium at ``p`` (dict or (Np,)), warm-started from the current equilibrium."""
+        return self.eq.solve(self.param_vector(p))
+
+    def landmarks(self, names=None, rest: bool = False) -> dict[str, np.ndarray]:
+        """Landmark positions {name: (3,)} mm, deformed (or rest). Collective."""
+        names = list(self.domain.landmarks) if names is None else list(names)
+        unknown = [n for n in names if n not in self.domain.landmarks]
+        if unknown:
+            raise InputError(f"unknown landmark(s) {unknown}; known: {list(self.domain.landmarks)}")
+        u = np.zeros_like(self.eq.u.x.array) if rest else self.eq.u.x.array
+        pts = self._landmark_op.apply(u)
+        order = list(self.domain.landmarks)
+        return {n: pts[order.index(n)] for n in names}
+
+    def active_goal_error(self) -> float:
+        """Max distance (mm) of active vertices from their goals."""
+        return self.eq.active_goal_error()
+
+    def write(self, out_dir) -> list[str]:
+        """Write ``displacement.xdmf`` (rest mesh + u) and ``deformed.xdmf`` (deformed mesh
+        with facet tags) into ``out_dir``, atomically. Returns the file names."""
+        from pathlib import Path
+
+        out = Path(out_dir)
+        mesh = self.domain.mesh
+        write_xdmf(out / "displacement.xdmf", mesh, functions=[self.eq.u])
+        self.domain.facet_tags.name = "facet_tags"
+        write_xdmf(out / "deformed.xdmf", mesh, meshtags=[self.domain.facet_tags],
+                   node_displacement=node_values(self.domain, self.eq.u.x.array))
+        return ["displacement.xdmf", "displacement.h5", "deformed.xdmf", "deformed.h5"]

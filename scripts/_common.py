@@ -1,0 +1,99 @@
+"""Argument parsing and error reporting shared by the scripts (no physics here)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+
+
+def parse(ap, argv=None):
+    """Parse our arguments; hand the rest (``-orthodiff_...`` options) to PETSc.
+
+    Returns (args, comm)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args, rest = ap.parse_known_args(argv)
+    bad = [a for a in rest if a.startswith("--")]
+    if bad:
+        ap.error(f"unrecognised arguments: {' '.join(bad)}")
+    import petsc4py
+
+    petsc4py.init([sys.argv[0], *rest])
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    logging.basicConfig(level=logging.INFO if comm.rank == 0 else logging.WARNING,
+                        format="%(asctime)s %(name)s: %(message)s")
+    if comm.rank == 0:
+        import mpi4py
+        from petsc4py import PETSc
+
+        import dolfinx
+
+        logging.getLogger("orthodiff").info(
+            "dolfinx %s, petsc4py %s, mpi4py %s, %d rank(s)", dolfinx.__version__,
+            ".".join(map(str, PETSc.Sys.getVersion())), mpi4py.__version__, comm.size)
+    return args, comm
+
+
+def add_scene_args(ap):
+    from meshes.synthetic import CASES, RESOLUTIONS
+
+    ap.add_argument("--case", default="class3-asym", help=f"one of {sorted(CASES)}")
+    ap.add_argument("--resolution", default="coarse", help=f"one of {list(RESOLUTIONS)}")
+    ap.add_argument("--mesh", help="tetrahedral mesh file with a JSON sidecar (see README) "
+                    "instead of a built-in case")
+    ap.add_argument("--params-used", help="comma-separated subset of parameter names")
+    ap.add_argument("--solver", default="direct", help="linear solver preset: direct, cholmod, "
+                    "gamg")
+    ap.add_argument("--penalty", type=float, default=None, help="active penalty k, kPa/mm")
+
+
+def scene_from_args(args, comm):
+    from inverse.scene import Scene
+
+    kw = {"solver": args.solver, "comm": comm}
+    if args.params_used:
+        kw["params_used"] = [s.strip() for s in args.params_used.split(",") if s.strip()]
+    if args.penalty is not None:
+        kw["penalty"] = args.penalty
+    if args.mesh:
+        from meshes.external import load_tet_mesh
+
+        return Scene(lambda: load_tet_mesh(args.mesh), **kw)
+    return Scene.from_case(args.case, args.resolution, **kw)
+
+
+def load_params(path, pairs, scene) -> dict:
+    """{name: value} from a JSON file and NAME=VALUE pairs (pairs win)."""
+    from meshes.errors import InputError
+
+    values = {}
+    if path:
+        try:
+            with open(path) as fh:
+                values = json.load(fh)
+        except (OSError, json.JSONDecodeError) as e:
+            raise InputError(f"cannot read parameter file {path}: {e}") from None
+        if not isinstance(values, dict):
+            raise InputError(f"{path} must hold a JSON object {{name: value}}")
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep:
+            raise InputError(f"--p expects NAME=VALUE, got {pair!r}")
+        values[name.strip()] = value
+    return values
+
+
+def run_main(main) -> int:
+    """Run ``main``; report an orthodiff error on rank 0 as one line and exit code 2."""
+    from meshes.errors import OrthodiffError
+
+    try:
+        return main()
+    except OrthodiffError as e:
+        from mpi4py import MPI
+
+        if MPI.COMM_WORLD.rank == 0:
+            print(f"error: {e}", file=sys.stderr)
+        return 2
