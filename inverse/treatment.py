@@ -153,7 +153,7 @@ def sculpted_param(name: str, segment: str, rest_file, modified_file,
 
     try:
         rest, mod = meshio.read(rest_file), meshio.read(modified_file)
-    except Exception as e:  # meshio raises many types
+    except (Exception, SystemExit) as e:  # meshio raises many types, even SystemExit
         raise InputError(f"cannot read sculpted surfaces {rest_file}, {modified_file}: {e}")
     if rest.points.shape != mod.points.shape:
         raise InputError(f"sculpted surface {modified_file} has {len(mod.points)} vertices, "

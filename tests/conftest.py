@@ -1,0 +1,39 @@
+"""Shared fixtures: tiny synthetic scenes, built once per session (dolfinx conftest habits)."""
+
+import gc
+
+import pytest
+from mpi4py import MPI
+
+import numpy as np
+
+
+@pytest.fixture(autouse=True)
+def _collective_cleanup():
+    """Collective destructors line up across ranks (dolfinx python/test/conftest.py)."""
+    yield
+    gc.collect()
+    MPI.COMM_WORLD.Barrier()
+
+
+@pytest.fixture(scope="session")
+def tiny_anatomy():
+    from meshes.synthetic import synthetic_head
+
+    return synthetic_head("class3", "tiny")
+
+
+@pytest.fixture(scope="session")
+def mandible_scene(tiny_anatomy):
+    """class3/tiny with the six mandible motions only."""
+    from inverse.scene import Scene
+    from inverse.treatment import rigid_treatment
+
+    scene = Scene(tiny_anatomy, treatment=rigid_treatment(("mandible",)))
+    scene.case, scene.resolution = "class3", "tiny"
+    return scene
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)

@@ -1,0 +1,162 @@
+"""Synthetic anatomy, validation of bad meshes, and real anatomy from files."""
+
+import copy
+import json
+
+import meshio
+import numpy as np
+import pytest
+
+from meshes.anatomy import FIXED, SKIN, STANDARD_LANDMARKS, Anatomy, signed_volumes
+from meshes.errors import InputError, MeshError
+from meshes.external import load_tet_mesh, tetrahedralise
+from meshes.synthetic import CASES, RESOLUTIONS, synthetic_head
+
+
+def test_tiny_head_has_everything(tiny_anatomy):
+    a = tiny_anatomy
+    assert a.n_vertices < 3000
+    assert set(STANDARD_LANDMARKS) <= set(a.landmarks)
+    assert set(a.segments) == {"mandible", "maxilla_L", "maxilla_R"}
+    assert np.all(signed_volumes(a.points, a.cells) > 0)
+    pos = a.landmark_positions()
+    # anatomical order along the profile: nose tip most anterior, chin below lips
+    assert pos["Prn"][1] > pos["Ls"][1] > pos["Sn"][1] - 5
+    assert pos["N"][2] > pos["Prn"][2] > pos["Sn"][2] > pos["Ls"][2] > pos["Li"][2] \
+        > pos["Pg"][2] > pos["Me"][2]
+    assert pos["T_L"][0] > 60 and pos["T_R"][0] < -60
+    for s in a.segments:   # maxilla halves on their own side
+        x = a.pivots[s][0]
+        assert {"mandible": abs(x) < 5, "maxilla_L": x > 10, "maxilla_R": x < -10}[s]
+
+
+def test_cases_differ_where_expected(tiny_anatomy):
+    c2 = synthetic_head("class2", "tiny").landmark_positions()
+    c3 = tiny_anatomy.landmark_positions()
+    assert c3["Pg"][1] - c2["Pg"][1] > 10          # prognathic vs retruded chin
+    assert abs(c3["N"][1] - c2["N"][1]) < 0.5      # same upper face
+    asym = synthetic_head("class3-asym", "tiny").landmark_positions()
+    assert asym["Pg"][0] < -3                       # chin deviated to the right
+
+
+def test_cache_is_reused(tiny_anatomy, monkeypatch):
+    import meshes.synthetic as syn
+
+    monkeypatch.setattr(syn, "build", lambda *a: pytest.fail("regenerated a cached mesh"))
+    again = synthetic_head("class3", "tiny")
+    np.testing.assert_array_equal(again.cells, tiny_anatomy.cells)
+
+
+def test_unknown_case_and_resolution():
+    with pytest.raises(InputError, match="unknown case"):
+        synthetic_head("class4", "tiny")
+    with pytest.raises(InputError, match="unknown resolution"):
+        synthetic_head("class3", "huge")
+    assert set(CASES) == {"class1", "class2", "class3", "class3-asym"}
+    assert list(RESOLUTIONS) == ["tiny", "coarse", "medium", "paper", "fine"]
+
+
+def _broken(a, how):
+    b = copy.deepcopy(a)
+    if how == "no fixed tags":
+        b.facet_tags = np.where(b.facet_tags == FIXED, SKIN, b.facet_tags)
+    elif how == "inverted":
+        b.cells[5] = b.cells[5][[1, 0, 2, 3]]
+    elif how == "duplicate":
+        b.cells = np.vstack([b.cells, b.cells[:1]])
+    elif how == "flat":
+        b.points[b.cells[7, 3]] = b.points[b.cells[7, :3]].mean(axis=0)
+    elif how == "nan":
+        b.points[3, 1] = np.nan
+    elif how == "landmark off skin":
+        bone = b.facets[b.facet_tags == FIXED][0]
+        b.landmarks["Pg"].facet = bone
+    elif how == "not tets":
+        b.cells = b.cells[:, :3]
+    return b
+
+
+@pytest.mark.parametrize("how,match", [
+    ("no fixed tags", "no facets tagged fixed"), ("inverted", "inverted"),
+    ("duplicate", "duplicate"), ("flat", "degenerate|inverted"), ("nan", "NaN"),
+    ("landmark off skin", "off the skin"), ("not tets", "tetrahedra")])
+def test_bad_mesh_clear_error(tiny_anatomy, how, match):
+    with pytest.raises(MeshError, match=match):
+        _broken(tiny_anatomy, how).validate()
+
+
+def _write_tet_mesh(a: Anatomy, path, landmarks):
+    meshio.write(path, meshio.Mesh(a.points, [("tetra", a.cells), ("triangle", a.facets)],
+                                   cell_data={"tag": [np.zeros(len(a.cells), int),
+                                                      a.facet_tags]}))
+    side = {"facet_data": "tag", "roles": {"skin": 1, "fixed": 2, "free_bone": 3, "rim": 4},
+            "segments": {k: int(v) for k, v in a.segments.items()}, "landmarks": landmarks}
+    with open(str(path) + ".json", "w") as fh:
+        json.dump(side, fh)
+
+
+def test_tet_mesh_with_sidecar(tiny_anatomy, tmp_path):
+    pos = tiny_anatomy.landmark_positions()
+    f = tmp_path / "head.vtu"
+    _write_tet_mesh(tiny_anatomy, f, {k: pos[k].tolist() for k in ("Pg", "Li", "N")})
+    a = load_tet_mesh(f)
+    assert a.n_cells == tiny_anatomy.n_cells and set(a.segments) == set(tiny_anatomy.segments)
+    for k, v in a.landmark_positions().items():
+        np.testing.assert_allclose(v, pos[k], atol=1e-6)
+    # a landmark 3 mm outside the skin is refused
+    _write_tet_mesh(tiny_anatomy, f, {"Pg": (pos["Pg"] + [0, 3, 0]).tolist()})
+    with pytest.raises(MeshError, match="off the skin"):
+        load_tet_mesh(f)
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(MeshError, match="does not exist"):
+        load_tet_mesh(tmp_path / "nothing.vtu")
+    (tmp_path / "trunc.vtu").write_text("<VTKFile type=")
+    with pytest.raises(MeshError, match="cannot read"):
+        load_tet_mesh(tmp_path / "trunc.vtu")
+    tri = tmp_path / "surf.vtu"
+    meshio.write(tri, meshio.Mesh(np.eye(3), [("triangle", np.array([[0, 1, 2]]))]))
+    (tmp_path / "surf.vtu.json").write_text("{}")
+    with pytest.raises(MeshError, match="no tetrahedra"):
+        load_tet_mesh(tri)
+
+
+def _sphere(r, n=2):
+    """Icosphere of radius r (points, triangles), outward oriented."""
+    t = (1 + 5 ** 0.5) / 2
+    p = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    pts, tris = list(p / np.linalg.norm(p, axis=1)[:, None]), [tuple(x) for x in f]
+    for _ in range(n):
+        cache, new = {}, []
+        for a, b, c in tris:
+            m = []
+            for i, j in ((a, b), (b, c), (c, a)):
+                key = (min(i, j), max(i, j))
+                if key not in cache:
+                    q = pts[i] + pts[j]
+                    pts.append(q / np.linalg.norm(q))
+                    cache[key] = len(pts) - 1
+                m.append(cache[key])
+            new += [(a, m[0], m[2]), (b, m[1], m[0]), (c, m[2], m[1]), (m[0], m[1], m[2])]
+        tris = new
+    return r * np.array(pts), np.array(tris)
+
+
+def test_tetrahedralise_surfaces(tmp_path):
+    for name, r in (("skin.stl", 50.0), ("bone.ply", 30.0)):
+        p, t = _sphere(r)
+        meshio.write(tmp_path / name, meshio.Mesh(p, [("triangle", t)]))
+    regions = [{"role": "free_bone", "box": [[-99, -99, -15], [99, 99, 0]]},
+               {"role": "mandible", "box": [[-99, -99, -99], [99, 99, -15]]}]
+    a = tetrahedralise(tmp_path / "skin.stl", tmp_path / "bone.ply", regions,
+                       {"Pg": [0, 0, -50], "N": [0, 50, 0]}, h=8.0)
+    assert a.segments == {"mandible": 11}
+    assert np.all(signed_volumes(a.points, a.cells) > 0)
+    vol = np.abs(signed_volumes(a.points, a.cells)).sum()
+    assert 0.85 * 4 / 3 * np.pi * (50 ** 3 - 30 ** 3) < vol < 4 / 3 * np.pi * (50 ** 3 - 30 ** 3)
+    assert np.linalg.norm(a.landmark_positions()["Pg"] - [0, 0, -50]) < 0.5
