@@ -73,13 +73,16 @@ class Equilibrium:
         solver: a key of `PRESETS`; any PETSc option can be overridden with
             ``-<prefix>ksp_type ...`` on the command line or in ``options``.
         xtol: stop when the Newton step is below xtol (inf-norm, mm) and the residual has
-            dropped by ``frtol``.
+            dropped by ``frtol``; or when the residual norm is below ``atol`` (mN).
+        max_it: Newton iterations per SNES solve.
+        shift_max: largest diagonal shift, in units of the median diagonal of K.
     """
 
     def __init__(self, domain: Domain, blendshapes: np.ndarray, active_tags,
                  material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
                  solver: str = "direct", options: dict | None = None,
                  prefix: str = "orthodiff_fwd_", xtol: float = 1e-5, frtol: float = 1e-6,
+                 atol: float = 1e-10,
                  max_it: int = 50, shift_max: float = 1e4, quadrature_degree: int = 2):
         if not prefix:
             raise ValueError("an options prefix is required")
@@ -89,7 +92,7 @@ class Equilibrium:
             raise InputError(f"penalty k = {penalty} kPa/mm must be positive and finite")
         t0 = time.perf_counter()
         self.domain, self.material, self.penalty = domain, material, penalty
-        self.xtol, self.frtol, self.max_it = xtol, frtol, max_it
+        self.xtol, self.frtol, self.atol, self.max_it = xtol, frtol, atol, max_it
         V = domain.V
         self.u = dolfinx.fem.Function(V, name="displacement")
         self._uvec = compat.petsc_vec(self.u)
@@ -125,6 +128,7 @@ class Equilibrium:
         self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
         self.ksp = self._make_snes(prefix, solver, options or {})
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
+        self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
         self.setup_time = time.perf_counter() - t0
         self._cells = self._cell_blocks()
 
@@ -277,16 +281,16 @@ class Equilibrium:
         self._stats.residual_history.append(fnorm)
         if not np.isfinite(fnorm):
             return PETSc.SNES.ConvergedReason.DIVERGED_FNORM_NAN
+        if fnorm <= self.atol:
+            return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
         if it == 0:
             self._f0 = fnorm
             self._x_prev = snes.getSolution().copy()
-            return 0 if fnorm > 1e-14 else PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
+            return 0
         x = snes.getSolution()
         self._x_prev.axpy(-1.0, x)
         step = self._x_prev.norm(PETSc.NormType.INFINITY)
         x.copy(self._x_prev)
-        if fnorm <= 1e-14 * max(1.0, self._f0):
-            return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
         if step <= self.xtol and fnorm <= self.frtol * self._f0:
             return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
         if it >= self.max_it:
@@ -315,7 +319,8 @@ class Equilibrium:
         self._stats = SolveStats()
         t0 = time.perf_counter()
         p_done = self.p.copy()
-        u_good = self._uvec.copy()
+        u_good = self.u_eq.copy()   # self.u may have been changed by the caller
+        self._set_state(u_good)
         todo = [p]
         depth = 0
         while todo:
@@ -327,6 +332,7 @@ class Equilibrium:
                 depth += 1
                 if depth > max_bisections:
                     self.set_params(p_done)
+                    u_good.destroy()
                     raise SolverError(
                         f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
                         f"{max_bisections} bisections; the largest step reached is p = "
@@ -337,10 +343,10 @@ class Equilibrium:
                 continue
             todo.pop()
             p_done = p_next
-            u_good.destroy()
-            u_good = self._uvec.copy()
+            self._uvec.copy(u_good)
         u_good.destroy()
         self.p = p_done
+        self._uvec.copy(self.u_eq)
         st = self._stats
         st.total = time.perf_counter() - t0
         st.linear_solve = max(st.total - st.assemble, 0.0)
@@ -378,5 +384,5 @@ class Equilibrium:
         return self.domain.comm.allreduce(local, op=MPI.MAX)
 
     def destroy(self):
-        for obj in [self.snes, self.A, self.b, self._x, self.dfdg, *self.dfdp]:
+        for obj in [self.snes, self.A, self.b, self._x, self.u_eq, self.dfdg, *self.dfdp]:
             obj.destroy()

@@ -1,11 +1,11 @@
 """Shared fixtures: tiny synthetic scenes, built once per session (dolfinx conftest habits)."""
 
-import gc
-
-import pytest
 from mpi4py import MPI
 
+import gc
+
 import numpy as np
+import pytest
 
 
 @pytest.fixture(autouse=True)
