@@ -44,7 +44,7 @@ PRESETS = {
              "ksp_norm_type": "unpreconditioned"},
 }
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
-DEFAULT_PENALTY = 5000.0
+DEFAULT_PENALTY = 5.0e4
 
 
 @dataclasses.dataclass
