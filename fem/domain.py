@@ -92,23 +92,21 @@ class PointOperator:
     def build(cls, domain: Domain, landmarks: list[Landmark]) -> "PointOperator":
         owned = domain.input_index[:domain.n_owned]
         order = np.argsort(owned)
-        pts, blocks, ws = [], [], []
-        for i, lm in enumerate(landmarks):
-            for v, w in zip(lm.facet, lm.weights):
-                j = np.searchsorted(owned, v, sorter=order)
-                if j < len(owned) and owned[order[j]] == v:
-                    pts.append(i)
-                    blocks.append(order[j])
-                    ws.append(w)
-        block = np.array(blocks, dtype=np.int32)
-        return cls(domain.comm, len(landmarks), np.array(pts, dtype=np.int32), block,
-                   np.array(ws, dtype=float), domain.X[block])
+        facet = np.array([lm.facet for lm in landmarks], dtype=np.int64).reshape(-1)
+        weight = np.array([lm.weights for lm in landmarks], dtype=float).reshape(-1)
+        point = np.repeat(np.arange(len(landmarks), dtype=np.int32), 3)
+        j = np.minimum(np.searchsorted(owned, facet, sorter=order), max(len(owned) - 1, 0))
+        mine = (owned[order[j]] == facet) if len(owned) else np.zeros(len(facet), bool)
+        block = order[j[mine]].astype(np.int32)
+        return cls(domain.comm, len(landmarks), point[mine], block, weight[mine],
+                   domain.X[block])
 
-    def apply(self, u_array: np.ndarray) -> np.ndarray:
-        """Deformed points (Nt, 3) mm from the local displacement array (blocked, ghosts ok)."""
+    def apply(self, u_array: np.ndarray, offset: bool = True) -> np.ndarray:
+        """Points (Nt, 3) mm, ``L(X + u)``, from a local blocked displacement array (ghosts
+        optional); with ``offset=False`` the linear part ``L u`` only. Collective."""
         local = np.zeros((self.n_points, 3))
-        vals = self.weight[:, None] * (self.X + u_array.reshape(-1, 3)[self.block])
-        np.add.at(local, self.point, vals)
+        vals = u_array.reshape(-1, 3)[self.block] + (self.X if offset else 0.0)
+        np.add.at(local, self.point, self.weight[:, None] * vals)
         return self.comm.allreduce(local, op=MPI.SUM)
 
     def transpose_add(self, g: np.ndarray, out_array: np.ndarray) -> None:

@@ -61,6 +61,16 @@ class SolveStats:
     total: float = 0.0
 
 
+class _ApplyOther:
+    """Python PC context that applies another, already built PC."""
+
+    def __init__(self, pc):
+        self.pc = pc
+
+    def apply(self, pc, x, y):
+        self.pc.apply(x, y)
+
+
 class Equilibrium:
     """Owns forms, PETSc objects and the current equilibrium of one scene.
 
@@ -75,7 +85,10 @@ class Equilibrium:
         xtol: stop when the Newton step is below xtol (inf-norm, mm) and the residual has
             dropped by ``frtol``; or when the residual norm is below ``atol`` (mN).
         max_it: Newton iterations per SNES solve.
-        shift_max: largest diagonal shift, in units of the median diagonal of K.
+        shift_max: largest diagonal shift of the inertia check, in units of the median
+            diagonal of K.
+        shift_retry: after a failed SNES solve, Newton is resumed with shifts 0.01, 1, ...
+            up to this (same units); then the step in p is bisected.
     """
 
     def __init__(self, domain: Domain, blendshapes: np.ndarray, active_tags,
@@ -83,7 +96,8 @@ class Equilibrium:
                  solver: str = "direct", options: dict | None = None,
                  prefix: str = "orthodiff_fwd_", xtol: float = 1e-5, frtol: float = 1e-6,
                  atol: float = 1e-10,
-                 max_it: int = 50, shift_max: float = 1e4, quadrature_degree: int = 2):
+                 max_it: int = 25, shift_max: float = 1e4, shift_retry: float = 1.0,
+                 quadrature_degree: int = 2):
         if not prefix:
             raise ValueError("an options prefix is required")
         if solver not in PRESETS:
@@ -124,11 +138,17 @@ class Equilibrium:
         G.assemble()
         self.dfdg = G
         self.dfdp = self._coupling_times_blendshapes()
-        self.shift_max = shift_max
+        self.shift_max, self.shift_retry = shift_max, shift_retry
         self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
         self.ksp = self._make_snes(prefix, solver, options or {})
+        self._f_ref = None
+        self._pc_ready = False               # the SNES PC holds a factorisation of some K
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
+        self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
+        self._K_ready = False
+        self._sens = None                    # cached dx/dp columns at the equilibrium
+        self.tangent_ksp = self._make_tangent_ksp(prefix)
         self.setup_time = time.perf_counter() - t0
         self._cells = self._cell_blocks()
 
@@ -198,6 +218,21 @@ class Equilibrium:
         self.snes, self.solver_name = snes, solver
         return ksp
 
+    def _make_tangent_ksp(self, prefix: str):
+        """CG on K at the equilibrium, preconditioned by whatever the last Newton step built
+        (its factorisation or GAMG hierarchy): no refactorisation for adjoints/sensitivities."""
+        ksp = PETSc.KSP().create(self.domain.comm)
+        ksp.setOptionsPrefix(prefix + "tangent_")
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        ksp.setTolerances(rtol=1e-11, atol=1e-30, max_it=200)
+        ksp.setOperators(self.K)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(_ApplyOther(self.ksp.getPC()))
+        ksp.setFromOptions()
+        return ksp
+
     def _cell_blocks(self):
         """(n_cells_local, 4) dof blocks and rest edge matrices' inverse determinants."""
         blocks = self.domain.V.dofmap.list.array.reshape(-1, 4)
@@ -256,6 +291,7 @@ class Equilibrium:
         self._stats.assemble += time.perf_counter() - t
         if self._shift > 0:
             A.shift(self._shift)
+        self._pc_ready = True
         if not self._check_inertia:
             return
         while True:
@@ -284,7 +320,7 @@ class Equilibrium:
         if fnorm <= self.atol:
             return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
         if it == 0:
-            self._f0 = fnorm
+            self._f0 = fnorm if self._f_ref is None else self._f_ref
             self._x_prev = snes.getSolution().copy()
             return 0
         x = snes.getSolution()
@@ -308,25 +344,34 @@ class Equilibrium:
         self.goal.x.array[:] = self.B @ p
         return p
 
-    def solve(self, p, max_bisections: int = 6) -> SolveStats:
+    def solve(self, p, max_bisections: int = 6, predict: bool = True) -> SolveStats:
         """Equilibrium at parameters p (Np,), warm-started from the current one.
 
-        Returns `SolveStats`; raises `SolverError` when even continuation fails, leaving the
-        last good equilibrium in place.
+        With ``predict``, Newton starts from the first-order prediction
+        ``x(p0) + dx/dp (p - p0)`` (one solve with the kept preconditioner, or free when the
+        sensitivities are cached) when it inverts no element. Returns `SolveStats`; raises
+        `SolverError` when even continuation fails, leaving the last good equilibrium.
         """
         p = np.asarray(p, dtype=float).reshape(-1)
         self.set_params(p)  # validates
         self._stats = SolveStats()
+        if np.array_equal(p, self.p):   # already there
+            self._set_state(self.u_eq)
+            return self._stats
         t0 = time.perf_counter()
         p_done = self.p.copy()
         u_good = self.u_eq.copy()   # self.u may have been changed by the caller
-        self._set_state(u_good)
+        start = self._predict(p) if predict else None
+        self._invalidate()
+        self._set_state(start or u_good)
+        if start is not None:
+            start.destroy()
         todo = [p]
         depth = 0
         while todo:
             p_next = todo[-1]
             try:
-                self._newton(p_next)
+                self._newton(p_next, p_done)
             except SolverError:
                 self._set_state(u_good)
                 depth += 1
@@ -352,11 +397,19 @@ class Equilibrium:
         st.linear_solve = max(st.total - st.assemble, 0.0)
         return st
 
-    def _newton(self, p):
-        """One SNES solve at p; when it fails, raise the diagonal shift and resume."""
+    def _newton(self, p, p_from):
+        """One SNES solve at p from the equilibrium at p_from (or a prediction of it); when
+        it fails, raise the diagonal shift and resume. The residual tolerance is relative to
+        the load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start."""
         self.set_params(p)
         self._shift = 0.0
+        load = self.u_eq.duplicate()
+        load.set(0.0)
+        load.maxpy(p - p_from, self.dfdp)
+        self._f_ref = load.norm() or None
+        load.destroy()
         self._uvec.copy(self._x)
+        shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
         while True:
             self.snes.solve(None, self._x)
             reason = self.snes.getConvergedReason()
@@ -364,15 +417,115 @@ class Equilibrium:
             self._set_state(self._x)
             if reason > 0 and np.all(np.isfinite(self.u.x.array)):
                 break
-            if self._shift >= self.shift_max * self._diag_scale:
+            if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
-            self._shift = max(10 * self._shift, 1e-2 * self._diag_scale)
-            self._stats.shifts.append(self._shift)
+            shift = self._shift = max(100 * shift, 1e-2 * self._diag_scale)
+            self._stats.shifts.append(shift)
             log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
-                     self.snes.getIterationNumber(), self._shift)
+                     self.snes.getIterationNumber(), shift)
         self._shift = 0.0
-        if self._stats.shifts:   # keep K itself, not a shifted matrix, for later solves
-            self._jacobian(self.snes, self._x, self.A, self.A)
+
+    # ------------------------------------------------------------------ linearisation at x(p)
+    def _invalidate(self):
+        self._K_ready = False
+        for v in self._sens or []:
+            v.destroy()
+        self._sens = None
+
+    def _assemble_K(self):
+        if self._K_ready:
+            return
+        self._set_state(self.u_eq)
+        self.K.zeroEntries()
+        compat.assemble_matrix(self.K, self.forms["jacobian"], self.bcs, 1.0)
+        self.K.assemble()
+        self._K_ready = True
+
+    def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
+        """out = K⁻¹ rhs, K = df/du at the current equilibrium (collective; Dirichlet rows
+        are identity). CG preconditioned by the last Newton factorisation; rebuilt at the
+        equilibrium only if CG fails. Returns the CG iteration count."""
+        self._assemble_K()
+        ksp = self.tangent_ksp
+        for attempt in range(2):
+            if attempt or not self._pc_ready:   # (re)build the preconditioner at x(p)
+                self._jacobian(self.snes, self.u_eq, self.A, self.A)
+                self.ksp.setOperators(self.A)
+                self.ksp.getPC().setUp()
+                self._set_state(self.u_eq)
+            ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
+            ksp.solve(rhs, out)
+            if ksp.getConvergedReason() > 0:
+                if attempt:
+                    ksp.setType("cg")
+                return ksp.getIterationNumber()
+        raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
+                          f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "
+                          "singular or indefinite at this equilibrium")
+
+    def sensitivity(self) -> list:
+        """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
+        computed with Np solves on first use and cached until the equilibrium changes."""
+        if self._sens is None:
+            sens = []
+            for g in self.dfdp:
+                rhs, s = g.copy(), g.duplicate()
+                rhs.scale(-1.0)
+                self.solve_tangent(rhs, s)
+                rhs.destroy()
+                sens.append(s)
+            self._sens = sens
+        return self._sens
+
+    def coupling_transpose(self, lam: PETSc.Vec) -> np.ndarray:
+        """(df/dp)ᵀ λ, shape (Np,) (collective). With λ = K⁻¹ ∂T/∂x, dT/dp = -(df/dp)ᵀ λ."""
+        return np.array([g.dot(lam) for g in self.dfdp])
+
+    def tangent_step(self, dp) -> PETSc.Vec:
+        """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
+        tangent solve."""
+        dp = np.asarray(dp, dtype=float)
+        out = self.u_eq.duplicate()
+        out.set(0.0)
+        if self._sens is not None:
+            out.maxpy(dp, self._sens)
+            return out
+        rhs = out.duplicate()
+        rhs.set(0.0)
+        rhs.maxpy(-dp, self.dfdp)
+        self.solve_tangent(rhs, out)
+        rhs.destroy()
+        return out
+
+    def _predict(self, p):
+        """x(p0) + dx/dp (p - p0) as a start for Newton, or None (no factorisation yet, no
+        change, or the prediction inverts an element)."""
+        dp = p - self.p
+        if not (np.any(dp) and (self._pc_ready or self._sens is not None)):
+            return None
+        try:
+            x = self.tangent_step(dp)
+        except SolverError:
+            return None
+        x.axpy(1.0, self.u_eq)
+        self._set_state(x)
+        if self.min_det_F() > 0:
+            return x
+        x.destroy()
+        return None
+
+    def snapshot(self):
+        """(p, u) of the current equilibrium, for `restore`."""
+        return self.p.copy(), self.u_eq.copy()
+
+    def restore(self, snap):
+        """Return to an equilibrium saved by `snapshot` (no solve)."""
+        p, u = snap
+        self.set_params(p)
+        self.p = p.copy()
+        u.copy(self.u_eq)
+        self._set_state(self.u_eq)
+        self._invalidate()
 
     # ------------------------------------------------------------------ outputs
     def active_goal_error(self) -> float:
@@ -384,5 +537,7 @@ class Equilibrium:
         return self.domain.comm.allreduce(local, op=MPI.MAX)
 
     def destroy(self):
-        for obj in [self.snes, self.A, self.b, self._x, self.u_eq, self.dfdg, *self.dfdp]:
+        self._invalidate()
+        for obj in [self.snes, self.tangent_ksp, self.A, self.K, self.b, self._x, self.u_eq,
+                    self.dfdg, *self.dfdp]:
             obj.destroy()

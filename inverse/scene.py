@@ -115,3 +115,38 @@ class Scene:
         write_xdmf(out / "deformed.xdmf", mesh, meshtags=[self.domain.facet_tags],
                    node_displacement=node_values(self.domain, self.eq.u.x.array))
         return ["displacement.xdmf", "displacement.h5", "deformed.xdmf", "deformed.h5"]
+
+    def objective(self, targets, landmarks=None, weights=None, tikhonov: float = 0.0):
+        """`inverse.objective.Objective` for landmark targets.
+
+        Args:
+            targets: JSON path or ``{name: [x, y, z]}`` (mm); ``landmarks``: optional subset
+                of its names; weights: ``{name: w}`` or (Nt,); tikhonov: α (mm² per unit²).
+        """
+        from inverse.objective import Objective, load_targets
+
+        names, pts = load_targets(targets, self.landmarks(rest=True), landmarks)
+        if isinstance(weights, dict):
+            bad = [n for n in weights if n not in names]
+            if bad:
+                raise InputError(f"weights for landmark(s) {bad} that have no target")
+            weights = [float(weights.get(n, 1.0)) for n in names]
+        return Objective(self.eq, self.domain.point_operator(names), pts, weights, tikhonov,
+                         names)
+
+    def default_targets(self) -> dict:
+        """The case's built-in treatment goal ``{name: [x, y, z]}`` (see `inverse.targets`)."""
+        from inverse.targets import default_targets
+
+        return default_targets(self.case, self.landmarks(rest=True))
+
+    def plan(self, targets=None, landmarks=None, weights=None, tikhonov: float = 0.0,
+             p0=None, **options):
+        """Plan the treatment that brings landmarks to ``targets`` (default: the case's
+        built-in goal). Returns `inverse.planner.PlanResult`; the scene is left at the
+        planned equilibrium. ``options`` go to `inverse.planner.gauss_newton`."""
+        from inverse.planner import gauss_newton
+
+        targets = self.default_targets() if targets is None else targets
+        obj = self.objective(targets, landmarks, weights, tikhonov)
+        return gauss_newton(self, obj, p0=p0, **options)

@@ -34,6 +34,11 @@ MOTIONS = {  # name: (kind, axis, unit, bounds)
     "yaw_deg": ("rotation", (0, 0, 1), "deg", (-10.0, 10.0)),
 }
 
+#: Parameters planned by default: the mandible's six motions, the maxilla halves' advance and
+#: vertical position (their rotations are poorly determined by skin landmarks).
+PLAN_PARAMS = [f"mandible.{m}" for m in MOTIONS] + [
+    f"maxilla_{s}.{m}" for s in "LR" for m in ("advance_mm", "vertical_mm")]
+
 
 @dataclasses.dataclass(frozen=True)
 class Param:

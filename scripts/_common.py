@@ -36,14 +36,17 @@ def parse(ap, argv=None):
     return args, comm
 
 
-def add_scene_args(ap):
+def add_scene_args(ap, plan: bool = False):
+    """Scene options; for planning, ``--params-used`` defaults to `PLAN_PARAMS`."""
+    from inverse.treatment import PLAN_PARAMS
     from meshes.synthetic import CASES, RESOLUTIONS
 
     ap.add_argument("--case", default="class3-asym", help=f"one of {sorted(CASES)}")
     ap.add_argument("--resolution", default="coarse", help=f"one of {list(RESOLUTIONS)}")
     ap.add_argument("--mesh", help="tetrahedral mesh file with a JSON sidecar (see README) "
                     "instead of a built-in case")
-    ap.add_argument("--params-used", help="comma-separated subset of parameter names")
+    ap.add_argument("--params-used", default=",".join(PLAN_PARAMS) if plan else None,
+                    help="comma-separated subset of parameter names")
     ap.add_argument("--solver", default="direct", help="linear solver preset: direct, cholmod, "
                     "gamg")
     ap.add_argument("--penalty", type=float, default=None, help="active penalty k, kPa/mm")

@@ -1,0 +1,158 @@
+"""Landmark objective ``T(p) = ½ Σ_l w_l |x_l(p) - x̂_l|² + ½ α |p|²`` and its derivatives.
+
+``x_l = L(X + u(p))`` are skin points (a sparse `PointOperator` L), ``u(p)`` the equilibrium.
+With ``K = ∂f/∂u`` and ``G = ∂f/∂p`` at the equilibrium (``f(u(p), p) = 0``):
+
+* gradient by ONE adjoint solve: ``K λ = Lᵀ W r``, ``dT/dp = -Gᵀ λ + α p``;
+* landmark sensitivity ``S_T = L dx/dp = -L K⁻¹ G`` (3 Nt, Np) with ``min(Np, 3 Nt)`` solves:
+  Np "direct" solves ``K s_i = -G_i`` or 3 Nt "adjoint" solves ``K λ_j = Lᵀ e_j``.
+
+Every solve reuses the factorisation the forward Newton built (`Equilibrium.solve_tangent`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from fem.domain import PointOperator
+from fem.equilibrium import Equilibrium
+from meshes.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: A target farther than this from the landmark's rest position gets a warning, mm.
+FAR_TARGET_MM = 30.0
+
+
+def load_targets(source, rest: dict, names=None, far_mm: float = FAR_TARGET_MM):
+    """Validated landmark targets.
+
+    Args:
+        source: a JSON file path or a dict ``{name: [x, y, z]}`` (mm).
+        rest: ``{name: (3,)}`` rest positions of all known landmarks (mm).
+        names: optional subset of the targets to use, in order.
+    Returns:
+        (names list, points (Nt, 3) mm).
+    """
+    if isinstance(source, (str, Path)):
+        try:
+            source = json.loads(Path(source).read_text())
+        except (OSError, ValueError) as e:
+            raise InputError(f"cannot read targets file {source}: {e}") from None
+    if not isinstance(source, dict):
+        raise InputError("targets must be a JSON object {landmark: [x, y, z]}")
+    names = list(source) if names is None else list(names)
+    unknown = [n for n in names if n not in rest]
+    if unknown:
+        raise InputError(f"unknown landmark(s) {unknown}; known: {list(rest)}")
+    missing = [n for n in names if n not in source]
+    if missing:
+        raise InputError(f"no target given for landmark(s) {missing}")
+    if not names:
+        raise InputError("targets need at least one landmark")
+    pts = []
+    for n in names:
+        try:
+            x = np.asarray(source[n], dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"target {n} = {source[n]!r} is not a 3-vector in mm") from None
+        if x.shape != (3,):
+            raise InputError(f"target {n} = {source[n]!r} is not a 3-vector in mm")
+        if not np.all(np.isfinite(x)):
+            raise InputError(f"target {n} = {x.tolist()} is not finite")
+        d = float(np.linalg.norm(x - rest[n]))
+        if d > far_mm:
+            warnings.warn(f"target {n} is {d:.1f} mm from its rest position (more than "
+                          f"{far_mm:g} mm: outside the face?)", stacklevel=2)
+        pts.append(x)
+    return names, np.array(pts)
+
+
+class Objective:
+    """T(p) for point targets on the current equilibrium of ``eq``.
+
+    Args:
+        eq: the equilibrium (its current state is x(p)).
+        op: point operator L, Nt points.
+        targets: (Nt, 3) target positions x̂, mm.
+        weights: (Nt,) w_l (default 1).
+        tikhonov: α, mm² per squared parameter unit.
+        names: optional point names (landmarks), for reports.
+    """
+
+    def __init__(self, eq: Equilibrium, op: PointOperator, targets, weights=None,
+                 tikhonov: float = 0.0, names=None):
+        self.eq, self.op, self.names = eq, op, names
+        self.targets = np.asarray(targets, dtype=float).reshape(op.n_points, 3)
+        w = np.ones(op.n_points) if weights is None else np.asarray(weights, dtype=float)
+        if w.shape != (op.n_points,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise InputError(f"weights must be {op.n_points} finite non-negative numbers")
+        if not (np.isfinite(tikhonov) and tikhonov >= 0):
+            raise InputError(f"Tikhonov weight {tikhonov} must be finite and >= 0")
+        self.weights, self.tikhonov = w, float(tikhonov)
+
+    @property
+    def n_points(self) -> int:
+        return self.op.n_points
+
+    def points(self) -> np.ndarray:
+        """Current points x_T (Nt, 3), mm."""
+        return self.op.apply(self.eq.u.x.array)
+
+    def residual(self) -> np.ndarray:
+        """x_T - x̂_T, (Nt, 3) mm."""
+        return self.points() - self.targets
+
+    def value(self) -> float:
+        r = self.residual()
+        p = self.eq.p
+        return 0.5 * float(np.sum(self.weights[:, None] * r * r)) \
+            + 0.5 * self.tikhonov * float(p @ p)
+
+    def distances(self) -> np.ndarray:
+        """|x_l - x̂_l| per point (Nt,), mm."""
+        return np.linalg.norm(self.residual(), axis=1)
+
+    def _adjoint(self, g: np.ndarray) -> np.ndarray:
+        """-Gᵀ K⁻¹ Lᵀ g for g (Nt, 3): one adjoint solve, result (Np,)."""
+        rhs = self.eq.u_eq.duplicate()
+        arr = np.zeros(rhs.getLocalSize())
+        self.op.transpose_add(g, arr)
+        rhs.setArray(arr)
+        lam = rhs.duplicate()
+        self.eq.solve_tangent(rhs, lam)
+        out = -self.eq.coupling_transpose(lam)
+        rhs.destroy()
+        lam.destroy()
+        return out
+
+    def gradient(self) -> np.ndarray:
+        """dT/dp (Np,) at the current equilibrium, by one adjoint solve."""
+        g = self.weights[:, None] * self.residual()
+        return self._adjoint(g) + self.tikhonov * self.eq.p
+
+    def jacobian(self, mode: str = "auto"):
+        """S_T = dx_T/dp, shape (3 Nt, Np) (rows x,y,z per point), and the mode used.
+
+        ``mode``: "direct" (Np solves, cached in the equilibrium), "adjoint" (3 Nt solves)
+        or "auto" (the cheaper; direct when the sensitivities are already cached).
+        """
+        n_rows, n_p = 3 * self.n_points, self.eq.n_params
+        if mode == "auto":
+            mode = "direct" if n_p <= n_rows or self.eq._sens is not None else "adjoint"
+        if mode == "direct":
+            cols = [self.op.apply(s.array, offset=False).ravel() for s in self.eq.sensitivity()]
+            return np.stack(cols, axis=1), mode
+        if mode != "adjoint":
+            raise InputError(f"unknown sensitivity mode {mode!r}: auto, direct or adjoint")
+        S = np.empty((n_rows, n_p))
+        for row in range(n_rows):
+            e = np.zeros((self.n_points, 3))
+            e.flat[row] = 1.0
+            S[row] = self._adjoint(e)
+        return S, mode

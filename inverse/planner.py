@@ -1,0 +1,198 @@
+"""Sparse Gauss-Newton planning (paper eq. 6; Zehnder, Coros & Thomaszewski 2022).
+
+The Gauss-Newton step minimises the linearised objective subject to the linearised
+equilibrium, the sparse KKT system
+
+    [ Lᵀ W L      0        K  ] [dx]   [-Lᵀ W r]
+    [ 0        αI + D      Gᵀ ] [dp] = [-α p   ]
+    [ K           G        0  ] [λ ]   [ 0     ]
+
+Eliminating dx = -K⁻¹ G dp = S dp and λ gives the reduced system with ``S_T = L S``:
+
+    (S_Tᵀ W S_T + αI + D) dp = -(S_Tᵀ W r + α p),
+
+which is what we solve (Np is small); D is Levenberg-Marquardt damping. Box bounds are
+handled by freezing parameters at a bound whose gradient points outward and projecting trial
+points. An Armijo backtracking line search on T accepts the step; every trial is a forward
+solve warm-started from the first-order prediction.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from inverse.objective import Objective
+from meshes.errors import InputError, SolverError
+
+log = logging.getLogger("orthodiff.plan")
+
+
+@dataclasses.dataclass
+class PlanResult:
+    """Outcome of `gauss_newton`. Distances in mm, times in s.
+
+    Attributes:
+        params: (Np,) final parameters; params_initial: (Np,) start.
+        objective, objective_initial: T at the end and at the start (mm²).
+        converged: a stopping test was met (``reason`` says which); False on the iteration
+            limit or a failed line search, which is reported, never raised.
+        history: one dict per iteration: iteration, T, mean_distance_mm, step, alpha, mu,
+            newton_iterations, forward_solves, time_s.
+        gn_iterations, forward_solves: counts; timings: forward, adjoint, sensitivity,
+            line_search, total.
+    """
+
+    params: np.ndarray
+    params_initial: np.ndarray
+    objective: float
+    objective_initial: float
+    converged: bool
+    reason: str
+    history: list
+    gn_iterations: int
+    forward_solves: int
+    timings: dict
+
+
+def check_bounds(bounds, p0) -> np.ndarray:
+    """(Np, 2) bounds that contain p0, else `InputError`."""
+    b = np.asarray(bounds, dtype=float)
+    if b.shape != (len(p0), 2) or np.any(np.isnan(b)) or np.any(b[:, 0] > b[:, 1]):
+        raise InputError(f"bounds must be ({len(p0)}, 2) with lo <= hi, got {b.tolist()}")
+    out = (p0 < b[:, 0]) | (p0 > b[:, 1])
+    if np.any(out):
+        raise InputError(f"the start point is outside the bounds for parameter index(es) "
+                         f"{np.flatnonzero(out).tolist()}: p0 = {p0[out].tolist()}, bounds "
+                         f"{b[out].tolist()}")
+    return b
+
+
+def reduced_step(S, weights3, r, p, tikhonov, mu, free):
+    """Damped Gauss-Newton step (Np,) from the reduced system; fixed parameters get 0.
+
+    S: (3Nt, Np) landmark sensitivity; weights3: (3Nt,); r: (3Nt,) residual, mm;
+    mu: Marquardt damping relative to diag(H); free: (Np,) bool.
+    """
+    H = S.T @ (weights3[:, None] * S) + tikhonov * np.eye(len(p))
+    g = S.T @ (weights3 * r) + tikhonov * p
+    Hf = H[np.ix_(free, free)]
+    d = np.diag(Hf)
+    Hf = Hf + mu * np.diag(d + 1e-12 * max(d.max(initial=0.0), 1e-300))
+    dp = np.zeros(len(p))
+    dp[free] = np.linalg.solve(Hf, -g[free])
+    return dp
+
+
+def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iterations: int = 20,
+                 gtol: float = 1e-9, ftol: float = 1e-6, xtol: float = 1e-7,
+                 mu: float = 1e-9, armijo: float = 1e-4, max_backtracks: int = 8,
+                 max_step: float = 10.0, mode: str = "auto", callback=None) -> PlanResult:
+    """Minimise ``objective`` over the scene's parameters from ``p0`` (default 0).
+
+    Stops when the projected gradient is below ``gtol`` (mm² per unit), T decreases by less
+    than ``ftol`` relative, the step is below ``xtol`` (units), or T < 1e-14 mm². A step
+    is at most ``max_step`` (mm or degrees) in any parameter.
+    """
+    t_start = time.perf_counter()
+    eq = scene.eq
+    n_p = eq.n_params
+    p = np.zeros(n_p) if p0 is None else scene.param_vector(p0)
+    p_init = p.copy()
+    b = check_bounds(scene.treatment.bounds if bounds is None else bounds, p)
+    lo, hi = b[:, 0], b[:, 1]
+    timings = dict(forward=0.0, adjoint=0.0, sensitivity=0.0, line_search=0.0)
+    forward_solves = 0
+
+    def forward(q, key):
+        nonlocal forward_solves
+        t = time.perf_counter()
+        try:
+            st = eq.solve(q)
+            return st.newton_iterations
+        finally:
+            forward_solves += 1
+            timings[key] += time.perf_counter() - t
+
+    newton = forward(p, "forward") if np.any(p != eq.p) else 0
+    T = T0 = objective.value()
+    w3 = np.repeat(objective.weights, 3)
+    history = [dict(iteration=0, T=T, mean_distance_mm=float(objective.distances().mean()),
+                    step=0.0, alpha=0.0, mu=mu, newton_iterations=newton,
+                    forward_solves=forward_solves, time_s=time.perf_counter() - t_start)]
+    _log(history[-1])
+    converged, reason, it = False, "iteration limit", 0
+    for it in range(1, max_iterations + 1):
+        if T < 1e-14:
+            converged, reason, it = True, "objective below 1e-14 mm²", it - 1
+            break
+        t = time.perf_counter()
+        S, used = objective.jacobian(mode)
+        timings["adjoint" if used == "adjoint" else "sensitivity"] += time.perf_counter() - t
+        r = objective.residual().ravel()
+        g = S.T @ (w3 * r) + objective.tikhonov * p
+        free = ~(((p <= lo) & (g > 0)) | ((p >= hi) & (g < 0)))
+        if np.max(np.abs(g[free]), initial=0.0) <= gtol:
+            converged, reason, it = True, "projected gradient below gtol", it - 1
+            break
+        base = eq.snapshot()
+        accepted, newton = False, 0
+        for _ in range(6):   # raise the damping until a step is accepted
+            dp = reduced_step(S, w3, r, p, objective.tikhonov, mu, free)
+            dp *= min(1.0, max_step / max(np.max(np.abs(dp)), 1e-300))  # trust region
+            alpha = 1.0
+            for _ in range(max_backtracks + 1):
+                q = np.clip(p + alpha * dp, lo, hi)
+                try:
+                    newton += forward(q, "line_search")
+                    T_q = objective.value()
+                except SolverError as e:
+                    log.info("trial p = %s failed: %s", np.round(q, 4).tolist(), e)
+                    T_q = np.inf
+                if T_q <= T + armijo * float(g @ (q - p)):
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if accepted:
+                break
+            eq.restore(base)
+            mu = max(10 * mu, 1e-6)
+        eq_release(base)
+        if not accepted:
+            reason = "line search failed: no decrease even with strong damping"
+            it -= 1
+            break
+        step = float(np.max(np.abs(q - p)))
+        T_prev, p = T, q
+        T = T_q
+        mu = max(mu / 10, 1e-9) if alpha == 1.0 else max(4 * mu, 1e-3)
+        history.append(dict(iteration=it, T=T, mean_distance_mm=float(
+            objective.distances().mean()), step=step, alpha=alpha, mu=mu,
+            newton_iterations=newton, forward_solves=forward_solves,
+            time_s=time.perf_counter() - t_start))
+        _log(history[-1])
+        if callback is not None:
+            callback(p, history[-1])
+        if T_prev - T <= ftol * T_prev:
+            converged, reason = True, "relative decrease below ftol"
+            break
+        if step <= xtol:
+            converged, reason = True, "step below xtol"
+            break
+    timings["total"] = time.perf_counter() - t_start
+    return PlanResult(p, p_init, T, T0, converged, reason, history, it, forward_solves,
+                      timings)
+
+
+def eq_release(snap):
+    """Free the PETSc vector held by an `Equilibrium.snapshot`."""
+    snap[1].destroy()
+
+
+def _log(h):
+    log.info("GN %2d  T = %.4e mm²  mean distance %.4f mm  step %.3g  alpha %.3g  "
+             "Newton %d  %.1f s", h["iteration"], h["T"], h["mean_distance_mm"], h["step"],
+             h["alpha"], h["newton_iterations"], h["time_s"])

@@ -1,0 +1,111 @@
+"""Clinical construction rules: landmark targets from a face's rest geometry (mm).
+
+Axes: +x patient's left, +y anterior, +z superior. Each rule returns ``{name: (3,)}``.
+
+* `true_vertical_line` - Arnett's soft-tissue cephalometric analysis (Arnett et al., Am J
+  Orthod Dentofacial Orthop 1999;116:239-253): with the head in natural position, the true
+  vertical line (TVL) through subnasale Sn is the reference for the anterior-posterior
+  position of the lower face. Norms (mean of the male and female values): upper lip Ls
+  +3.5 mm, lower lip Li +1.9 mm, soft-tissue pogonion Pg -2.6 mm (behind the TVL). Menton
+  Me moves with the chin (the same A-P correction as Pg). Only y changes.
+* `e_line` - Ricketts' esthetic line from the nose tip Prn to Pg (Ricketts, Angle Orthod
+  1957;27:14-37 and 1968): the upper lip lies ~4 mm and the lower lip ~2 mm behind it in the
+  profile (y-z) view. The lips move along y only.
+* `symmetry` - facial symmetry for asymmetric cases: Pg, the lip midpoints Ls, Li and Me are
+  moved onto the mid-sagittal plane (x of N and Sn, the upper face that surgery does not move),
+  and the tragion line T_L-T_R is levelled (both at their mean height).
+* `keep` - the named landmarks stay where they are (e.g. Sn: do not advance the nose base).
+
+`DEFAULT_GOALS` composes them per case: class2 uses 3 landmarks, class3-asym 7 (paper 3.2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from meshes.errors import InputError
+
+TVL_NORMS_MM = {"Ls": 3.5, "Li": 1.9, "Pg": -2.6}
+E_LINE_MM = {"Ls": -4.0, "Li": -2.0}
+
+
+def true_vertical_line(rest: dict, names=("Ls", "Li", "Pg", "Me")) -> dict:
+    """Targets on Arnett's norms relative to the true vertical through Sn (y only)."""
+    y0 = rest["Sn"][1]
+    out = {}
+    for n in names:
+        x = np.array(rest[n], dtype=float)
+        if n == "Me":
+            x[1] += y0 + TVL_NORMS_MM["Pg"] - rest["Pg"][1]
+        else:
+            x[1] = y0 + TVL_NORMS_MM[n]
+        out[n] = x
+    return out
+
+
+def e_line(rest: dict) -> dict:
+    """Ls and Li at Ricketts' distances behind the Prn-Pg line, in the y-z profile."""
+    a, b = np.asarray(rest["Prn"])[1:], np.asarray(rest["Pg"])[1:]
+    t = (b - a) / np.linalg.norm(b - a)
+    nrm = np.array([t[1], -t[0]])          # perpendicular to the line
+    if nrm[0] < 0:
+        nrm = -nrm                         # pointing anterior (+y)
+    out = {}
+    for n, d in E_LINE_MM.items():
+        x = np.array(rest[n], dtype=float)
+        # signed distance now, then move along y to reach d
+        now = float((x[1:] - a) @ nrm)
+        x[1] += (d - now) / nrm[0]
+        out[n] = x
+    return out
+
+
+def symmetry(rest: dict, names=("Ls", "Li", "Pg", "Me")) -> dict:
+    """Midline landmarks onto the mid-sagittal plane; tragion line levelled."""
+    x_mid = 0.5 * (rest["N"][0] + rest["Sn"][0])
+    out = {}
+    for n in names:
+        x = np.array(rest[n], dtype=float)
+        x[0] = x_mid
+        out[n] = x
+    if "T_L" in rest and "T_R" in rest:
+        z = 0.5 * (rest["T_L"][2] + rest["T_R"][2])
+        for n in ("T_L", "T_R"):
+            out[n] = np.array(rest[n], dtype=float)
+            out[n][2] = z
+    return out
+
+
+def keep(rest: dict, names) -> dict:
+    return {n: np.array(rest[n], dtype=float) for n in names}
+
+
+def compose(rest: dict, *parts) -> dict:
+    """Merge rule outputs: each coordinate of a landmark comes from the rule that moved it
+    away from rest (the last one, if several did)."""
+    out = {}
+    for part in parts:
+        for n, x in part.items():
+            base = out.get(n, np.array(rest[n], dtype=float))
+            out[n] = np.where(np.isclose(x, rest[n]), base, x)
+    return out
+
+
+DEFAULT_GOALS = {
+    "class1": lambda r: true_vertical_line(r, ("Ls", "Li", "Pg")),
+    "class2": lambda r: true_vertical_line(r, ("Li", "Pg", "Me")),
+    "class3": lambda r: true_vertical_line(r, ("Ls", "Li", "Pg", "Me")),
+    "class3-asym": lambda r: compose(r, keep(r, ("Sn", "T_L", "T_R")),
+                                     true_vertical_line(r), symmetry(r)),
+}
+
+
+def default_targets(case: str, rest: dict) -> dict:
+    """The built-in treatment goal of a case, ``{name: [x, y, z]}`` from rest landmarks."""
+    if case not in DEFAULT_GOALS:
+        raise InputError(f"no default goal for {case!r}; give targets explicitly "
+                         f"(cases with a default: {sorted(DEFAULT_GOALS)})")
+    missing = [n for n in ("N", "Sn", "Pg", "Prn") if n not in rest]
+    if missing:
+        raise InputError(f"the default goal needs landmarks {missing}")
+    return {n: np.asarray(x).tolist() for n, x in DEFAULT_GOALS[case](rest).items()}

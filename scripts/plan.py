@@ -1,0 +1,108 @@
+#!/usr/bin/env python3
+"""Plan a treatment: the bone movements that bring skin landmarks to their targets.
+
+    mpirun -n 2 python3 scripts/plan.py --case class3-asym --resolution coarse \
+        [--targets T.json] [--landmarks Pg,Li,Ls] [--params-used ...] \
+        --out out/plan --report out/plan/report.json
+
+Targets default to the case's clinical goal (`inverse.targets`). Parameters default to
+`inverse.treatment.PLAN_PARAMS` (mandible: all six motions; maxilla halves: advance and
+vertical). The report has the keys listed in README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from scripts._common import add_scene_args, parse, run_main, scene_from_args  # noqa: E402
+
+
+def plan_report(scene, result, targets, before, comm) -> dict:
+    """The JSON report of a plan (see README): landmark table, parameters, history."""
+    after = scene.landmarks(list(targets))
+    table = {}
+    for n, t in targets.items():
+        t = [float(v) for v in t]
+        table[n] = {"target": t, "before": before[n], "after": after[n],
+                    "distance_before_mm": float(sum((b - c) ** 2 for b, c in zip(before[n], t))
+                                                ** 0.5),
+                    "distance_after_mm": float(sum((b - c) ** 2 for b, c in zip(after[n], t))
+                                               ** 0.5)}
+    mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
+    return {
+        "case": scene.case or scene.domain.name, "resolution": scene.resolution,
+        "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
+        "param_names": scene.param_names, "params_initial": result.params_initial,
+        "params_optimal": result.params, "landmarks": table,
+        "mean_distance_before_mm": mean("distance_before_mm"),
+        "mean_distance_after_mm": mean("distance_after_mm"),
+        "gn_iterations": result.gn_iterations, "forward_solves": result.forward_solves,
+        "converged": result.converged, "stop_reason": result.reason,
+        "history": result.history, "timings_s": result.timings,
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_args(ap, plan=True)
+    ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm (default: the case's "
+                    "clinical goal)")
+    ap.add_argument("--landmarks", help="comma-separated subset of the targets to use")
+    ap.add_argument("--tikhonov", type=float, default=0.01,
+                    help="α of ½α|p|², mm² per unit²: prefers small movements where the "
+                    "landmarks do not decide")
+    ap.add_argument("--ftol", type=float, default=1e-3,
+                    help="stop when T decreases by less than this fraction in an iteration")
+    ap.add_argument("--max-iterations", type=int, default=20)
+    ap.add_argument("--out", help="output folder for XDMF of the planned result")
+    ap.add_argument("--report", help="JSON report path")
+    args, comm = parse(ap, argv)
+    import time
+
+    from fem.io import write_json
+
+    t0 = time.perf_counter()
+    scene = scene_from_args(args, comm)
+    targets = args.targets or scene.default_targets()
+    names = [s.strip() for s in args.landmarks.split(",")] if args.landmarks else None
+    obj = scene.objective(targets, names, tikhonov=args.tikhonov)
+    names = obj.names
+    targets = dict(zip(names, obj.targets.tolist()))
+    before = scene.landmarks(names)
+    from inverse.planner import gauss_newton
+
+    result = gauss_newton(scene, obj, max_iterations=args.max_iterations, ftol=args.ftol)
+    report = plan_report(scene, result, targets, before, comm)
+    report["timings_s"] = dict(report["timings_s"], mesh=scene.timings["mesh"],
+                               compile=scene.timings["compile"])
+    if args.out:
+        scene.write(args.out)
+    report["timings_s"]["total"] = time.perf_counter() - t0
+    if args.report:
+        write_json(args.report, report, comm)
+    if comm.rank == 0:
+        print_plan(report)
+    return 0
+
+
+def print_plan(report) -> None:
+    """The landmark table, the parameters found and the timings, on stdout."""
+    print(f"\n{report['case']}: {report['n_vertices']} vertices, {report['n_ranks']} rank(s); "
+          f"{report['gn_iterations']} Gauss-Newton iterations, {report['forward_solves']} "
+          f"forward solves, converged: {report['converged']} ({report['stop_reason']})")
+    print(f"\n{'landmark':9s} {'before mm':>10s} {'after mm':>10s}")
+    for n, v in report["landmarks"].items():
+        print(f"{n:9s} {v['distance_before_mm']:10.2f} {v['distance_after_mm']:10.2f}")
+    print(f"{'mean':9s} {report['mean_distance_before_mm']:10.2f} "
+          f"{report['mean_distance_after_mm']:10.2f}\n\nparameters found:")
+    for n, v in zip(report["param_names"], report["params_optimal"]):
+        print(f"  {n:26s} {v:8.2f}")
+    print("\ntimings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in report["timings_s"].items()))
+
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))
