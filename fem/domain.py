@@ -69,6 +69,29 @@ class Domain:
         """Landmark operator for the named landmarks (in that order)."""
         return PointOperator.build(self, [self.landmarks[n] for n in names])
 
+    def skin_vertices(self) -> np.ndarray:
+        """Sorted original indices (K,) of all skin vertices, the same on every rank."""
+        from meshes.anatomy import SKIN
+
+        mine = self.input_index[self.facet_blocks([SKIN])]
+        return np.unique(np.concatenate(self.comm.allgather(mine)))
+
+    def skin_triangles(self, vertices: np.ndarray) -> np.ndarray:
+        """Skin triangles (F, 3) as positions in ``vertices`` (from `skin_vertices`)."""
+        from meshes.anatomy import SKIN
+
+        facets = self.facet_tags.indices[self.facet_tags.values == SKIN]
+        nodes = _cpp.mesh.entities_to_geometry(compat.cpp_mesh(self.mesh), 2, facets, False)
+        glob = np.asarray(self.mesh.geometry.input_global_indices, dtype=np.int64)[nodes]
+        tri = np.unique(np.sort(np.concatenate(self.comm.allgather(glob.reshape(-1, 3))),
+                                axis=1), axis=0)
+        return np.searchsorted(vertices, tri)
+
+    def vertex_operator(self, vertices) -> "PointOperator":
+        """Point operator for mesh vertices given by original index (K,)."""
+        return PointOperator.build(self, [Landmark((v, v, v), (1.0, 0.0, 0.0))
+                                          for v in vertices])
+
     def ds(self):
         return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags)
 

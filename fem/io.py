@@ -41,15 +41,30 @@ def _jsonable(x):
     raise TypeError(f"not JSON serialisable: {type(x)}")
 
 
-def write_json(path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
-    """Write ``data`` as JSON to ``path`` atomically (rank 0 writes)."""
+def _write_on_root(path, write, comm: MPI.Comm) -> None:
+    """Rank 0 calls ``write(tmp_path)``; the file is then renamed to ``path``."""
     path = Path(path)
     tmp = _tmpdir(path, comm)
     if comm.rank == 0:
-        with open(tmp / path.name, "w") as fh:
+        write(tmp / path.name)
+    _commit(tmp, path.parent, comm)
+
+
+def write_json(path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+    """Write ``data`` as JSON to ``path`` atomically (rank 0 writes)."""
+    def write(p):
+        with open(p, "w") as fh:
             json.dump(data, fh, indent=2, default=_jsonable)
             fh.write("\n")
-    _commit(tmp, path.parent, comm)
+    _write_on_root(path, write, comm)
+
+
+def write_npz(path, arrays: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+    """Write numpy arrays (the same on every rank) to ``path`` (.npz) atomically."""
+    def write(p):
+        with open(p, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+    _write_on_root(path, write, comm)
 
 
 def write_xdmf(path, mesh, functions=(), meshtags=(), node_displacement=None,

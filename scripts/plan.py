@@ -68,7 +68,8 @@ def main(argv=None):
     t0 = time.perf_counter()
     scene = scene_from_args(args, comm)
     targets = args.targets or scene.default_targets()
-    names = [s.strip() for s in args.landmarks.split(",")] if args.landmarks else None
+    names = [s.strip() for s in args.landmarks.split(",") if s.strip()] \
+        if args.landmarks is not None else None
     obj = scene.objective(targets, names, tikhonov=args.tikhonov)
     names = obj.names
     targets = dict(zip(names, obj.targets.tolist()))

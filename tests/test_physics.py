@@ -145,7 +145,7 @@ def test_first_order_prediction_warm_start_saves_newton_steps(mandible_scene):
     """Newton from x(p0) + dx/dp dp needs fewer iterations than from x(p0)."""
     scene = mandible_scene
     p0, p1 = np.array([3.0, 0, 0, 0, 0, 0]), np.array([4.0, 0.5, 0, 1.0, 0, 0])
-    its = {}
+    its, u_plain = {}, None
     for predict in (False, True):
         scene.solve(np.zeros(6))
         scene.solve(p0)

@@ -89,3 +89,98 @@ def test_readme_example_runs(tmp_path):
     r = _run([sys.executable, "-c", code], cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Pg" in r.stdout
+
+
+PLAN = [sys.executable, str(ROOT / "scripts" / "plan.py"), "--case", "class3-asym",
+        "--resolution", "tiny"]
+PLAN_KEYS = {"case", "resolution", "n_vertices", "n_ranks", "param_names", "params_initial",
+             "params_optimal", "landmarks", "mean_distance_before_mm",
+             "mean_distance_after_mm", "gn_iterations", "forward_solves", "converged",
+             "history", "timings_s"}
+
+
+def test_plan_default_goal_report(tmp_path):
+    """The default clinical goal of class3-asym (7 landmarks): report keys, progress."""
+    out = tmp_path / "out"
+    r = _run(PLAN + ["--max-iterations", "3", "--out", str(out), "--report",
+                     str(out / "r.json")])
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep = json.loads((out / "r.json").read_text())
+    assert "deformed.xdmf" in {p.name for p in out.iterdir()}
+    assert PLAN_KEYS <= set(rep)
+    assert set(rep["timings_s"]) >= {"forward", "adjoint", "sensitivity", "line_search",
+                                     "total"}
+    assert len(rep["landmarks"]) == 7 and len(rep["history"]) == rep["gn_iterations"] + 1
+    assert set(rep["landmarks"]["Pg"]) == {"target", "before", "after", "distance_before_mm",
+                                           "distance_after_mm"}
+    assert rep["mean_distance_after_mm"] < 0.5 * rep["mean_distance_before_mm"]
+
+
+@pytest.mark.mpi
+def test_plan_same_on_1_and_2_ranks(tmp_path):
+    """Targets from a forward solve at a known p*; the plans on 1 and 2 ranks agree."""
+    used = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
+    sim = tmp_path / "sim.json"
+    r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
+                        used, "--p", "mandible.advance_mm=-4", "mandible.lateral_mm=-2",
+                        "mandible.yaw_deg=-3", "maxilla_L.advance_mm=1.5", "--report",
+                        str(sim)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    targets = tmp_path / "t.json"
+    targets.write_text(json.dumps(json.loads(sim.read_text())["landmarks"]))
+    reports = {}
+    for n in (1, 2):
+        rep = tmp_path / f"r{n}.json"
+        r = _run(_mpirun(n) + PLAN + ["--targets", str(targets), "--landmarks", "Pg,Li,Ls",
+                                      "--params-used", used, "--tikhonov", "0", "--ftol",
+                                      "1e-10", "--report", str(rep)])
+        assert r.returncode == 0, r.stderr[-2000:]
+        reports[n] = json.loads(rep.read_text())
+    assert reports[2]["n_ranks"] == 2
+    for rep in reports.values():
+        assert rep["converged"] and rep["mean_distance_after_mm"] < 0.01
+        np.testing.assert_allclose(rep["params_optimal"], [-4, -2, -3, 1.5], rtol=1e-3)
+    np.testing.assert_allclose(reports[2]["params_optimal"], reports[1]["params_optimal"],
+                               rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("args,match", [
+    (["--landmarks", "Pg,Chin"], "unknown landmark"),
+    (["--landmarks", ","], "at least one landmark"),
+])
+def test_plan_bad_input_writes_nothing(tmp_path, args, match):
+    out = tmp_path / "out"
+    r = _run(PLAN + args + ["--out", str(out), "--report", str(out / "r.json")])
+    assert r.returncode == 2, r.stderr[-1000:]
+    assert match in r.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_plan_bad_targets_file(tmp_path):
+    t = tmp_path / "t.json"
+    t.write_text(json.dumps({"Pg": [0, "nan", 1]}))
+    r = _run(PLAN + ["--targets", str(t), "--report", str(tmp_path / "r.json")])
+    assert r.returncode == 2 and "not finite" in r.stderr
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_explore_saves_sensitivities_and_compares(tmp_path):
+    out = tmp_path / "e"
+    r = _run([sys.executable, str(ROOT / "scripts" / "explore.py"), "--case", "class3",
+              "--resolution", "tiny", "--params-used", "mandible.advance_mm,mandible.yaw_deg",
+              "--p", "mandible.advance_mm=-2", "--dp", "mandible.advance_mm=-1",
+              "--scales", "0.5,1", "--compare", "--out", str(out),
+              "--report", str(out / "r.json")])
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep = json.loads((out / "r.json").read_text())
+    z = np.load(out / "skin_sensitivity.npz")
+    n = rep["n_skin_vertices"]
+    assert z["S"].shape == (n, 3, 2) and z["points"].shape == (n, 3)
+    assert z["triangles"].max() < n and len(z["triangles"]) > n   # a closed-ish surface
+    for row in rep["predictions"]:
+        # the corrected prediction is at least as good as the plain one, both are close
+        assert row["corrected_error_max_mm"] <= row["plain_error_max_mm"] + 1e-9
+        assert row["plain_error_mean_mm"] < 0.05
+        np.testing.assert_allclose(row["Pg_displacement_corrected"],
+                                   row["Pg_displacement_true"], atol=0.02)
+    assert (out / "sensitivity.xdmf").exists()
