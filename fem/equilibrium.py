@@ -33,10 +33,12 @@ log = logging.getLogger(__name__)
 
 #: Linear solver presets (PETSc options under the object's prefix); override on the command line.
 PRESETS = {
-    "direct": {"ksp_type": "preonly", "pc_type": "cholesky",
+    "direct": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 100,
+               "ksp_norm_type": "unpreconditioned", "pc_type": "cholesky",
                "pc_factor_mat_solver_type": "mumps", "mat_mumps_icntl_13": 1,
                "mat_mumps_icntl_24": 1},  # inertia (negative pivots) in parallel
-    "cholmod": {"ksp_type": "preonly", "pc_type": "cholesky",
+    "cholmod": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 100,
+                "ksp_norm_type": "unpreconditioned", "pc_type": "cholesky",
                 "pc_factor_mat_solver_type": "cholmod"},
     "gamg": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 1000, "pc_type": "gamg",
              "pc_gamg_type": "agg", "pc_gamg_agg_nsmooths": 1, "mg_levels_ksp_type": "chebyshev",
@@ -55,6 +57,8 @@ class SolveStats:
     shifts: list = dataclasses.field(default_factory=list)
     continuation_steps: int = 0
     residual_history: list = dataclasses.field(default_factory=list)
+    factorisations: int = 0
+    lagged: int = 0
     assemble: float = 0.0
     factor: float = 0.0
     linear_solve: float = 0.0
@@ -89,6 +93,10 @@ class Equilibrium:
             diagonal of K.
         shift_retry: after a failed SNES solve, Newton is resumed with shifts 0.01, 1, ...
             up to this (same units); then the step in p is bisected.
+        lag_its: preconditioner lagging: K is refactorised only when the previous Newton
+            step's CG needed more than this many iterations with the kept factorisation
+            (or after a failure); 0 (default) refactorises every step: without the inertia
+            check, lagged CG on an indefinite K made paper-size Newton take 17 steps, not 7.
     """
 
     def __init__(self, domain: Domain, blendshapes: np.ndarray, active_tags,
@@ -97,7 +105,7 @@ class Equilibrium:
                  prefix: str = "orthodiff_fwd_", xtol: float = 1e-5, frtol: float = 1e-6,
                  atol: float = 1e-10,
                  max_it: int = 25, shift_max: float = 1e4, shift_retry: float = 1.0,
-                 quadrature_degree: int = 2):
+                 lag_its: int = 0, quadrature_degree: int = 2):
         if not prefix:
             raise ValueError("an options prefix is required")
         if solver not in PRESETS:
@@ -142,6 +150,7 @@ class Equilibrium:
         self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
         self.ksp = self._make_snes(prefix, solver, options or {})
         self._f_ref = None
+        self.lag_its, self._refactor = lag_its, False
         self._pc_ready = False               # the SNES PC holds a factorisation of some K
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
@@ -291,7 +300,15 @@ class Equilibrium:
         self._stats.assemble += time.perf_counter() - t
         if self._shift > 0:
             A.shift(self._shift)
-        self._pc_ready = True
+        pc = self.ksp.getPC()
+        reuse = (self.lag_its > 0 and self._pc_ready and not self._refactor
+                 and self._shift == 0 and self.ksp.getIterationNumber() <= self.lag_its)
+        pc.setReusePreconditioner(reuse)   # lagging: CG on the new K, the old factor as PC
+        self._pc_ready, self._refactor = True, False
+        if reuse:
+            self._stats.lagged += 1
+            return
+        self._stats.factorisations += 1
         if not self._check_inertia:
             return
         while True:
@@ -420,6 +437,7 @@ class Equilibrium:
             if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
             shift = self._shift = max(100 * shift, 1e-2 * self._diag_scale)
+            self._refactor = True
             self._stats.shifts.append(shift)
             log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
                      self.snes.getIterationNumber(), shift)
@@ -449,6 +467,7 @@ class Equilibrium:
         ksp = self.tangent_ksp
         for attempt in range(2):
             if attempt or not self._pc_ready:   # (re)build the preconditioner at x(p)
+                self._refactor = True
                 self._jacobian(self.snes, self.u_eq, self.A, self.A)
                 self.ksp.setOperators(self.A)
                 self.ksp.getPC().setUp()

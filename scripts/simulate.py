@@ -63,7 +63,8 @@ def main(argv=None):
         "n_ranks": comm.size, "param_names": scene.param_names, "params": p,
         "landmarks": moved, "landmarks_rest": rest, "active_goal_error_max_mm": err,
         "newton_iterations": stats.newton_iterations, "converged": True,
-        "diagonal_shifts": stats.shifts, "continuation_steps": stats.continuation_steps,
+        "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
+        "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
         "solver": scene.eq.solver_name, "timings_s": timings,
     }
     if args.report:

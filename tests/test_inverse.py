@@ -213,3 +213,23 @@ def test_same_goal_from_class2_and_class3_starts_gives_the_same_bone_position():
     B = scene.eq.B
     moved = (B @ (ends[0] - ends[1])).reshape(-1, 3)
     assert np.linalg.norm(moved, axis=1).max() < 0.1
+
+
+def test_fit_surface_recovers_the_treatment_of_a_predicted_face(scene):
+    """Fig. 5c: the parameters whose true equilibrium best matches a predicted skin."""
+    from inverse.explore import SkinPredictor, fit_surface
+
+    scene.solve(P0)
+    pred = SkinPredictor(scene)
+    dp = np.array([0.5, 0.0, -0.3, 0.0, 0.4, 0.0])
+    surface = pred.predict(dp)
+    skin, lm = pred.corrected(dp, steps=2)
+    scene.solve(P0 + dp)
+    true = pred.op.apply(scene.eq.u_eq.array)
+    err_plain = np.linalg.norm(surface - true, axis=1)
+    err_corr = np.linalg.norm(skin - true, axis=1)
+    assert err_corr.max() < 0.5 * err_plain.max()      # the chord steps help
+    assert np.allclose(lm["Pg"], scene.landmarks(["Pg"])["Pg"], atol=0.01)
+    scene.solve(P0)
+    res = fit_surface(scene, pred, true, ftol=1e-12)
+    assert np.abs(res.params - (P0 + dp)).max() < 1e-3
