@@ -33,6 +33,7 @@ test: install
 
 bench: install
 	$(PY) scripts/bench.py forward
+	$(PY) scripts/bench.py plan
 
 clean:
 	rm -rf $(VENV) .deb-installed out

@@ -496,6 +496,11 @@ class Equilibrium:
             self._sens = sens
         return self._sens
 
+    @property
+    def has_sensitivity(self) -> bool:
+        """dx/dp is cached for the current equilibrium (direct mode costs nothing more)."""
+        return self._sens is not None
+
     def coupling_transpose(self, lam: PETSc.Vec) -> np.ndarray:
         """(df/dp)ᵀ λ, shape (Np,) (collective). With λ = K⁻¹ ∂T/∂x, dT/dp = -(df/dp)ᵀ λ."""
         return np.array([g.dot(lam) for g in self.dfdp])

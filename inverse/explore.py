@@ -50,14 +50,23 @@ class SkinPredictor:
         pts = self.lm0 + self.lm_S @ np.asarray(dp, dtype=float)
         return dict(zip(self.landmark_names, pts))
 
-    def corrected(self, dp, steps: int = 1, substeps: int = 1):
+    def corrected(self, dp, steps: int = 1, substeps: int = 1, max_substeps: int = 32):
         """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp: the first-order state, then
         ``steps`` chord-Newton steps with K's kept factorisation, repeated over ``substeps``
-        equal parts of dp (a cheap continuation for large dp). No refactorisation; the scene
-        stays at x(p0). Where a first-order sub-step would invert an element the chord
-        iteration cannot start, and the plain prediction is returned. Collective."""
-        eq: Equilibrium = self.eq
+        equal parts of dp (a cheap continuation). Where a first-order sub-step would invert
+        an element, the parts are doubled up to ``max_substeps``; beyond that the plain
+        prediction is returned. No refactorisation; the scene stays at x(p0). Collective."""
         dp = np.asarray(dp, dtype=float)
+        n = substeps
+        while n <= max_substeps:
+            out = self._chord_path(dp, steps, n)
+            if out is not None:
+                return out
+            n *= 2
+        return self.predict(dp), self.predict_landmarks(dp)
+
+    def _chord_path(self, dp, steps: int, substeps: int):
+        eq: Equilibrium = self.eq
         step = eq.tangent_step(dp / substeps)
         x, r, dx = eq.u_eq.copy(), step.duplicate(), step.duplicate()
         pc = eq.ksp.getPC()
@@ -66,21 +75,20 @@ class SkinPredictor:
                 eq.set_params(self.p0 + dp * k / substeps)
                 step.copy(dx)
                 if self._step_valid(x, dx, +1.0) < 1.0:
-                    return self.predict(dp), self.predict_landmarks(dp)
+                    return None
                 for _ in range(steps):
                     eq._residual(None, x, r)
                     if not np.isfinite(r.norm()):
                         break
                     pc.apply(r, dx)
                     self._step_valid(x, dx, -1.0)
-            out = self.op.apply(x.array), dict(zip(self.landmark_names,
-                                                   self.lm_op.apply(x.array)))
+            return self.op.apply(x.array), dict(zip(self.landmark_names,
+                                                    self.lm_op.apply(x.array)))
         finally:
             eq.set_params(self.p0)
             eq._set_state(eq.u_eq)
             for v in (x, r, dx, step):
                 v.destroy()
-        return out
 
     def _step_valid(self, x, dx, sign: float, halvings: int = 10):
         """x += sign·t·dx with the largest t in 1, 1/2, ... that inverts no element; returns

@@ -144,7 +144,7 @@ class Objective:
         """
         n_rows, n_p = 3 * self.n_points, self.eq.n_params
         if mode == "auto":
-            mode = "direct" if n_p <= n_rows or self.eq._sens is not None else "adjoint"
+            mode = "direct" if n_p <= n_rows or self.eq.has_sensitivity else "adjoint"
         if mode == "direct":
             cols = [self.op.apply(s.array, offset=False).ravel() for s in self.eq.sensitivity()]
             return np.stack(cols, axis=1), mode

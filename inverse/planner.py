@@ -160,7 +160,7 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
                 break
             eq.restore(base)
             mu = max(10 * mu, 1e-6)
-        eq_release(base)
+        base[1].destroy()   # the snapshot's displacement vector
         if not accepted:
             reason = "line search failed: no decrease even with strong damping"
             it -= 1
@@ -185,11 +185,6 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
     timings["total"] = time.perf_counter() - t_start
     return PlanResult(p, p_init, T, T0, converged, reason, history, it, forward_solves,
                       timings)
-
-
-def eq_release(snap):
-    """Free the PETSc vector held by an `Equilibrium.snapshot`."""
-    snap[1].destroy()
 
 
 def _log(h):

@@ -40,7 +40,7 @@ def main(argv=None):
                     help="a change of the treatment to predict")
     ap.add_argument("--scales", default="1", help="comma-separated multiples of dp")
     ap.add_argument("--steps", type=int, default=2, help="chord-Newton steps per substep")
-    ap.add_argument("--substeps", type=int, default=4, help="continuation parts of dp")
+    ap.add_argument("--substeps", type=int, default=8, help="continuation parts of dp")
     ap.add_argument("--compare", action="store_true", help="solve the true equilibria")
     ap.add_argument("--out", help="folder for skin_sensitivity.npz and sensitivity.xdmf")
     ap.add_argument("--report", help="JSON report path")
