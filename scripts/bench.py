@@ -202,7 +202,8 @@ def plan(args) -> None:
                   "corrected = 8 continuation parts (doubled while a part inverts an "
                   "element) × 2 chord-Newton steps with the kept "
                   "factorisation.", "",
-                  "| resolution | skin vertices | skin S s | m mm | max skin displacement mm | "
+                  "| resolution | skin vertices | skin S s (Np solves excluded: see S_T) | m mm | "
+                  "max skin displacement mm | "
                   "plain error mm | plain ms/call | corrected error mm | corrected s |",
                   "|---|---|---|---|---|---|---|---|---|"]
     for res in args.resolutions.split(","):
