@@ -24,6 +24,12 @@ def _tmpdir(target: Path, comm: MPI.Comm) -> Path:
     return Path(comm.bcast(name, root=0))
 
 
+def _discard(tmp: Path, comm: MPI.Comm):
+    """Remove a temporary folder after a failed or interrupted write (local, no barrier)."""
+    if comm.rank == 0:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def _commit(tmp: Path, target_dir: Path, comm: MPI.Comm):
     comm.Barrier()
     if comm.rank == 0:
@@ -45,8 +51,12 @@ def _write_on_root(path, write, comm: MPI.Comm) -> None:
     """Rank 0 calls ``write(tmp_path)``; the file is then renamed to ``path``."""
     path = Path(path)
     tmp = _tmpdir(path, comm)
-    if comm.rank == 0:
-        write(tmp / path.name)
+    try:
+        if comm.rank == 0:
+            write(tmp / path.name)
+    except BaseException:
+        _discard(tmp, comm)
+        raise
     _commit(tmp, path.parent, comm)
 
 
@@ -86,6 +96,9 @@ def write_xdmf(path, mesh, functions=(), meshtags=(), node_displacement=None,
                 f.write_meshtags(tags)
             for fn in functions:
                 f.write_function(fn)
+    except BaseException:
+        _discard(tmp, comm)
+        raise
     finally:
         if node_displacement is not None:
             x[:, :3] -= node_displacement

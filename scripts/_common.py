@@ -90,10 +90,19 @@ def load_params(path, pairs, scene) -> dict:
 
 def run_main(main) -> int:
     """Run ``main``; report an orthodiff error on rank 0 as one line and exit code 2."""
+    import signal
+
     from meshes.errors import OrthodiffError
 
+    def interrupted(signum, frame):   # SIGTERM like Ctrl-C: unwind, discard partial output
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, interrupted)
     try:
         return main()
+    except KeyboardInterrupt as e:
+        print(f"interrupted ({e or 'SIGINT'}): no partial output was kept", file=sys.stderr)
+        return 130
     except OrthodiffError as e:
         from mpi4py import MPI
 

@@ -184,3 +184,27 @@ def test_explore_saves_sensitivities_and_compares(tmp_path):
         np.testing.assert_allclose(row["Pg_displacement_corrected"],
                                    row["Pg_displacement_true"], atol=0.02)
     assert (out / "sensitivity.xdmf").exists()
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
+    """A run stopped by a signal exits cleanly and leaves no half-written file."""
+    import select
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    proc = subprocess.Popen(PLAN + ["--out", str(out), "--report", str(out / "r.json")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+    seen = []
+    deadline = time.time() + 60
+    while time.time() < deadline and "GN  1" not in "".join(seen):
+        if select.select([proc.stderr], [], [], 0.2)[0]:
+            seen.append(proc.stderr.readline())   # the plan logs its iterations here
+    proc.send_signal(getattr(signal, sig))        # interrupt in the middle of the plan
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-1000:]
+    assert "interrupted" in err
+    assert not out.exists() or not any(out.iterdir())   # nothing, not even a .partial dir
