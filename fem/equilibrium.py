@@ -289,9 +289,7 @@ class Equilibrium:
         inertia is checked right after factorisation, and the shift raised until K is PD."""
         t = time.perf_counter()
         self._set_state(x)
-        A.zeroEntries()
-        compat.assemble_matrix(A, self.forms["jacobian"], self.bcs, 1.0)
-        A.assemble()
+        self._assemble_jacobian(A)
         if self._diag_scale is None:   # typical elastic diagonal, for shift sizes
             d = A.getDiagonal()
             med = np.median(d.array_r) if d.getLocalSize() else 0.0
@@ -328,6 +326,19 @@ class Equilibrium:
             log.debug("%d negative pivots: diagonal shift %.3g", n_neg, new)
         # let the shift decay once a step is accepted with a PD matrix
         self._shift = 0.0 if self._shift < 0.04 * self._diag_scale else self._shift / 4
+
+    def _assemble_jacobian(self, M):
+        """M = K at the current state u, Dirichlet rows/columns identity."""
+        M.zeroEntries()
+        compat.assemble_matrix(M, self.forms["jacobian"], self.bcs, 1.0)
+        M.assemble()
+
+    def _load(self, dp) -> PETSc.Vec:
+        """df/dp · dp (Np,) as a new PETSc vector, mN."""
+        out = self.u_eq.duplicate()
+        out.set(0.0)
+        out.maxpy(np.asarray(dp, dtype=float), self.dfdp)
+        return out
 
     def _converged(self, snes, it, norms):
         xnorm, ynorm, fnorm = norms
@@ -420,9 +431,7 @@ class Equilibrium:
         the load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start."""
         self.set_params(p)
         self._shift = 0.0
-        load = self.u_eq.duplicate()
-        load.set(0.0)
-        load.maxpy(p - p_from, self.dfdp)
+        load = self._load(p - p_from)
         self._f_ref = load.norm() or None
         load.destroy()
         self._uvec.copy(self._x)
@@ -454,9 +463,7 @@ class Equilibrium:
         if self._K_ready:
             return
         self._set_state(self.u_eq)
-        self.K.zeroEntries()
-        compat.assemble_matrix(self.K, self.forms["jacobian"], self.bcs, 1.0)
-        self.K.assemble()
+        self._assemble_jacobian(self.K)
         self._K_ready = True
 
     def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
@@ -486,14 +493,7 @@ class Equilibrium:
         """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
         computed with Np solves on first use and cached until the equilibrium changes."""
         if self._sens is None:
-            sens = []
-            for g in self.dfdp:
-                rhs, s = g.copy(), g.duplicate()
-                rhs.scale(-1.0)
-                self.solve_tangent(rhs, s)
-                rhs.destroy()
-                sens.append(s)
-            self._sens = sens
+            self._sens = [self.tangent_step(e) for e in np.eye(self.n_params)]
         return self._sens
 
     @property
@@ -511,12 +511,10 @@ class Equilibrium:
         dp = np.asarray(dp, dtype=float)
         out = self.u_eq.duplicate()
         out.set(0.0)
-        if self._sens is not None:
+        if self.has_sensitivity:
             out.maxpy(dp, self._sens)
             return out
-        rhs = out.duplicate()
-        rhs.set(0.0)
-        rhs.maxpy(-dp, self.dfdp)
+        rhs = self._load(-dp)
         self.solve_tangent(rhs, out)
         rhs.destroy()
         return out
@@ -525,7 +523,7 @@ class Equilibrium:
         """x(p0) + dx/dp (p - p0) as a start for Newton, or None (no factorisation yet, no
         change, or the prediction inverts an element)."""
         dp = p - self.p
-        if not (np.any(dp) and (self._pc_ready or self._sens is not None)):
+        if not (np.any(dp) and (self._pc_ready or self.has_sensitivity)):
             return None
         try:
             x = self.tangent_step(dp)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from fem.equilibrium import Equilibrium
-from inverse.objective import Objective
+from inverse.objective import Objective, point_sensitivity
 
 
 class SkinPredictor:
@@ -32,14 +32,12 @@ class SkinPredictor:
         self.op = dom.vertex_operator(self.vertices)
         self.p0 = self.eq.p.copy()
         self.x0 = self.op.apply(self.eq.u_eq.array)
-        cols = [self.op.apply(s.array, offset=False) for s in self.eq.sensitivity()]
-        self.S = np.stack(cols, axis=-1)
-        self._S2 = self.S.reshape(-1, len(cols))
+        self.S = point_sensitivity(self.eq, self.op)
+        self._S2 = self.S.reshape(-1, self.S.shape[-1])
         self.landmark_names = list(dom.landmarks)
         self.lm_op = dom.point_operator(self.landmark_names)
         self.lm0 = self.lm_op.apply(self.eq.u_eq.array)
-        self.lm_S = np.stack([self.lm_op.apply(s.array, offset=False)
-                              for s in self.eq.sensitivity()], axis=-1)
+        self.lm_S = point_sensitivity(self.eq, self.lm_op)
 
     def predict(self, dp) -> np.ndarray:
         """Plain first-order skin (N, 3) mm at p0 + dp. Local, no communication."""

@@ -73,6 +73,12 @@ def load_targets(source, rest: dict, names=None, far_mm: float = FAR_TARGET_MM):
     return names, np.array(pts)
 
 
+def point_sensitivity(eq: Equilibrium, op: PointOperator) -> np.ndarray:
+    """dx/dp at the points of ``op``, (Nt, 3, Np) mm per unit, from the equilibrium's cached
+    sensitivities (Np tangent solves on first use)."""
+    return np.stack([op.apply(s.array, offset=False) for s in eq.sensitivity()], axis=-1)
+
+
 class Objective:
     """T(p) for point targets on the current equilibrium of ``eq``.
 
@@ -146,8 +152,7 @@ class Objective:
         if mode == "auto":
             mode = "direct" if n_p <= n_rows or self.eq.has_sensitivity else "adjoint"
         if mode == "direct":
-            cols = [self.op.apply(s.array, offset=False).ravel() for s in self.eq.sensitivity()]
-            return np.stack(cols, axis=1), mode
+            return point_sensitivity(self.eq, self.op).reshape(n_rows, n_p), mode
         if mode != "adjoint":
             raise InputError(f"unknown sensitivity mode {mode!r}: auto, direct or adjoint")
         S = np.empty((n_rows, n_p))

@@ -67,6 +67,7 @@ def main(argv=None):
     t_sens = time.perf_counter() - t
     if args.out:
         _write(scene, pred, Path(args.out), comm)
+    pg0 = dict(zip(pred.landmark_names, pred.lm0))["Pg"]
     rows = []
     for s in scales:
         d = s * dp
@@ -79,16 +80,14 @@ def main(argv=None):
         corr, corr_lm = pred.corrected(d, args.steps, args.substeps)
         t_corr = time.perf_counter() - t
         row = {"scale": s, "dp": d, "predict_ms": 1e3 * t_plain, "corrected_s": t_corr,
-               "Pg_displacement_predicted": pred.predict_landmarks(d)["Pg"] - pred.lm0[
-                   pred.landmark_names.index("Pg")],
-               "Pg_displacement_corrected": corr_lm["Pg"] - pred.lm0[
-                   pred.landmark_names.index("Pg")]}
+               "Pg_displacement_predicted": pred.predict_landmarks(d)["Pg"] - pg0,
+               "Pg_displacement_corrected": corr_lm["Pg"] - pg0}
         if args.compare:
             t = time.perf_counter()
             scene.solve(p0 + d)
             row["true_solve_s"] = time.perf_counter() - t
             true = pred.op.apply(scene.eq.u_eq.array)
-            pg = scene.landmarks(["Pg"])["Pg"] - pred.lm0[pred.landmark_names.index("Pg")]
+            pg = scene.landmarks(["Pg"])["Pg"] - pg0
             for name, x in (("plain", plain), ("corrected", corr)):
                 e = np.linalg.norm(x - true, axis=1)
                 row[f"{name}_error_max_mm"], row[f"{name}_error_mean_mm"] = e.max(), e.mean()

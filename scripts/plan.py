@@ -22,15 +22,15 @@ from scripts._common import add_scene_args, parse, run_main, scene_from_args  # 
 
 def plan_report(scene, result, targets, before, comm) -> dict:
     """The JSON report of a plan (see README): landmark table, parameters, history."""
+    import numpy as np
+
     after = scene.landmarks(list(targets))
     table = {}
     for n, t in targets.items():
-        t = [float(v) for v in t]
+        t = np.asarray(t, dtype=float)
         table[n] = {"target": t, "before": before[n], "after": after[n],
-                    "distance_before_mm": float(sum((b - c) ** 2 for b, c in zip(before[n], t))
-                                                ** 0.5),
-                    "distance_after_mm": float(sum((b - c) ** 2 for b, c in zip(after[n], t))
-                                               ** 0.5)}
+                    "distance_before_mm": float(np.linalg.norm(before[n] - t)),
+                    "distance_after_mm": float(np.linalg.norm(after[n] - t))}
     mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
     return {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,
