@@ -47,6 +47,12 @@ PRESETS = {
 }
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
 DEFAULT_PENALTY = 5.0e4
+#: An equilibrium whose active vertices stay farther than this from their goals (mm) is
+#: reported: the tissue resists the treatment (or k is too soft).
+GOAL_TOLERANCE_MM = 0.05
+#: Farther than this (mm), the state is not the treatment's equilibrium but crushed tissue
+#: holding the bone back: it counts as a failed solve (continuation, then `SolverError`).
+GOAL_FAILURE_MM = 1.0
 
 
 @dataclasses.dataclass
@@ -58,11 +64,14 @@ class SolveStats:
     continuation_steps: int = 0
     residual_history: list = dataclasses.field(default_factory=list)
     factorisations: int = 0
+    linear_iterations: int = 0
     lagged: int = 0
     assemble: float = 0.0
     factor: float = 0.0
     linear_solve: float = 0.0
     total: float = 0.0
+    goal_error: float = 0.0   # max |u - B p| over active vertices, mm
+    min_det_F: float = 1.0    # smallest volume ratio J at the equilibrium
 
 
 class _ApplyOther:
@@ -129,7 +138,11 @@ class Equilibrium:
         F = ufl.Identity(3) + ufl.grad(self.u)
         ds = domain.ds()(tuple(active_tags), metadata={"quadrature_degree": quadrature_degree})
         gap = self.u - self.goal
-        energy = material.energy_density(F) * ufl.dx + 0.5 * penalty * ufl.inner(gap, gap) * ds
+        # material and penalty are constants, not numbers: the forms compile once for all
+        mu, lmbda, k = (dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(v))
+                        for v in (material.mu, material.lmbda, penalty))
+        energy = (material.energy_density(F, mu, lmbda) * ufl.dx
+                  + 0.5 * k * ufl.inner(gap, gap) * ds)
         residual = ufl.derivative(energy, self.u, v)
         jacobian = ufl.derivative(residual, self.u, du)
         coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant
@@ -403,13 +416,13 @@ class Equilibrium:
             except SolverError:
                 self._set_state(u_good)
                 depth += 1
-                if depth > max_bisections:
-                    self.set_params(p_done)
+                if depth > max_bisections:   # keep the largest step reached
+                    self._commit(p_done, t0)
                     u_good.destroy()
                     raise SolverError(
                         f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
                         f"{max_bisections} bisections; the largest step reached is p = "
-                        f"{np.round(p_done, 4).tolist()}") from None
+                        f"{np.round(p_done, 4).tolist()}, where the scene is left") from None
                 todo.append(0.5 * (p_done + p_next))
                 self._stats.continuation_steps += 1
                 log.info("continuation: bisecting to p = %s", todo[-1])
@@ -418,9 +431,20 @@ class Equilibrium:
             p_done = p_next
             self._uvec.copy(u_good)
         u_good.destroy()
-        self.p = p_done
+        return self._commit(p_done, t0)
+
+    def _commit(self, p, t0) -> SolveStats:
+        """Make the current state u the equilibrium at p; finish the stats; report a goal
+        the tissue did not let the bone reach."""
+        self.set_params(p)
+        self.p = p.copy()
         self._uvec.copy(self.u_eq)
         st = self._stats
+        st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
+        if st.goal_error > GOAL_TOLERANCE_MM and self.domain.comm.rank == 0:
+            log.warning("active vertices end %.3f mm from their goals (> %g mm) at p = %s: "
+                        "the tissue resists (min det F = %.2g) or the penalty k is too soft",
+                        st.goal_error, GOAL_TOLERANCE_MM, np.round(p, 3).tolist(), st.min_det_F)
         st.total = time.perf_counter() - t0
         st.linear_solve = max(st.total - st.assemble, 0.0)
         return st
@@ -440,8 +464,14 @@ class Equilibrium:
             self.snes.solve(None, self._x)
             reason = self.snes.getConvergedReason()
             self._stats.newton_iterations += self.snes.getIterationNumber()
+            self._stats.linear_iterations += self.snes.getLinearSolveIterations()
             self._set_state(self._x)
             if reason > 0 and np.all(np.isfinite(self.u.x.array)):
+                gap = self.active_goal_error()
+                if gap > GOAL_FAILURE_MM:
+                    raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
+                                      f"{gap:.1f} mm from its goal (tissue crushed, min det F "
+                                      f"= {self.min_det_F():.1e})")
                 break
             if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")

@@ -40,8 +40,12 @@ class NeoHookean:
         """First Lame parameter, kPa."""
         return self.E * self.nu / ((1 + self.nu) * (1 - 2 * self.nu))
 
-    def energy_density(self, F):
-        """Strain energy density (UFL scalar, kPa) of the deformation gradient F."""
+    def energy_density(self, F, mu=None, lmbda=None):
+        """Strain energy density (UFL scalar, kPa) of the deformation gradient F. ``mu`` and
+        ``lmbda`` may be UFL constants holding `mu` and `lmbda` (one compiled form serves
+        every material); by default the numbers are used."""
+        mu = self.mu if mu is None else mu
+        lmbda = self.lmbda if lmbda is None else lmbda
         J = ufl.det(F)
         lnJ = ufl.ln(J)
-        return 0.5 * self.mu * (ufl.tr(F.T * F) - 3) - self.mu * lnJ + 0.5 * self.lmbda * lnJ**2
+        return 0.5 * mu * (ufl.tr(F.T * F) - 3) - mu * lnJ + 0.5 * lmbda * lnJ**2

@@ -29,8 +29,8 @@ class Scene:
         anatomy: an `Anatomy` or a callable returning one (evaluated on rank 0 only).
         treatment: parameters (default: six rigid motions per segment of the anatomy).
         params_used: optional subset of parameter names to keep, in order.
-        material, penalty (kPa/mm), solver (preset name), options (PETSc options): passed to
-            `fem.equilibrium.Equilibrium`.
+        material, penalty (kPa/mm), solver (preset name), options (PETSc options), and
+            ``newton`` (dict: xtol, frtol, max_it, ...): passed to `fem.equilibrium.Equilibrium`.
     """
 
     case: str | None = None
@@ -39,7 +39,8 @@ class Scene:
     def __init__(self, anatomy, treatment: Treatment | None = None,
                  params_used=None, material: NeoHookean = NeoHookean(),
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
-                 options: dict | None = None, comm: MPI.Comm = MPI.COMM_WORLD):
+                 options: dict | None = None, newton: dict | None = None,
+                 comm: MPI.Comm = MPI.COMM_WORLD):
         t0 = time.perf_counter()
         self.domain = create_domain(anatomy, comm)
         self.timings = {"mesh": time.perf_counter() - t0}
@@ -49,7 +50,7 @@ class Scene:
         self.eq = Equilibrium(self.domain, self.treatment.matrix(self.domain),
                               [self.domain.segments[s] for s in self.treatment.segments],
                               material=material, penalty=penalty, solver=solver,
-                              options=options)
+                              options=options, **(newton or {}))
         self.timings["compile"] = time.perf_counter() - t0
         self._landmark_op = self.domain.point_operator(list(self.domain.landmarks))
 

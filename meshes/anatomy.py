@@ -11,6 +11,7 @@ import dataclasses
 import json
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,9 @@ DIRICHLET_TAGS = (FIXED, RIM)
 STANDARD_LANDMARKS = ("N", "Prn", "Sn", "Ls", "Li", "Pg", "Me", "T_L", "T_R")
 #: Relative tolerance on tet volumes, against the mean volume, below which a cell is degenerate.
 DEGENERATE_VOLUME_RTOL = 1e-10
+#: Shape quality (`tet_quality`, 1 = regular) below which a valid cell is reported as a sliver.
+#: The built-in meshes stay above 0.01.
+SLIVER_QUALITY = 1e-3
 
 
 @dataclasses.dataclass
@@ -110,6 +114,12 @@ class Anatomy:
                             f"{np.flatnonzero(neg if neg.sum() < len(c) / 2 else ~neg)[0]}")
         if neg.all():
             c = c[:, [0, 2, 1, 3]]
+        q = tet_quality(p, c)
+        if q.min() < SLIVER_QUALITY:
+            warnings.warn(f"{np.sum(q < SLIVER_QUALITY)} sliver tetrahedra (shape quality < "
+                          f"{SLIVER_QUALITY:g}; worst {q.min():.1e} at cell {q.argmin()}): K is "
+                          "ill-conditioned there and Newton may need shifts; remesh if the "
+                          "solve fails", stacklevel=2)
         self.points, self.cells = p, c.astype(np.int64)
         self._validate_tags()
         self._validate_landmarks()
@@ -191,6 +201,15 @@ def signed_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """Signed volumes (M,) mm^3 of tetrahedra ``cells`` (M, 4) over ``points`` (N, 3)."""
     a = points[cells[:, 1:]] - points[cells[:, :1]]
     return np.linalg.det(a) / 6.0
+
+
+def tet_quality(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Shape quality (M,) of tetrahedra: 12 (3|V|)^(2/3) / Σ edge², 1 for a regular tet,
+    -> 0 for slivers and flat cells."""
+    x = points[cells]
+    edges = [x[:, i] - x[:, j] for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))]
+    l2 = sum(np.einsum("ij,ij->i", e, e) for e in edges)
+    return 12.0 * (3.0 * np.abs(signed_volumes(points, cells))) ** (2.0 / 3.0) / l2
 
 
 def boundary_facets(cells: np.ndarray) -> np.ndarray:

@@ -67,6 +67,13 @@ def scene_from_args(args, comm):
     return Scene.from_case(args.case, args.resolution, **kw)
 
 
+def peak_rss_mb(comm) -> float:
+    """Peak resident memory of the run, MiB, summed over ranks (collective)."""
+    import resource
+
+    return comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+
+
 def load_params(path, pairs, scene) -> dict:
     """{name: value} from a JSON file and NAME=VALUE pairs (pairs win)."""
     from meshes.errors import InputError

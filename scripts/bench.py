@@ -4,6 +4,13 @@
     python3 scripts/bench.py forward [--resolutions tiny,coarse,medium,paper]
                                      [--solvers direct,gamg] [--ranks 1,2]
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
+    python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
+
+``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
+and a PNG under ``docs/``: ``mesh`` (tiny to fine, finest as reference: landmark error and the
+planned p against wall time), ``tolerance`` (Newton tolerances against landmark error and
+time), ``prediction`` (first-order error against |dp|, plain and corrected), ``gradient``
+(adjoint against finite differences: cost against Np, FD error against h).
 
 ``plan``: class3-asym. In one process: the costs of one forward solve, the adjoint gradient,
 the landmark block S_T, the finite-difference gradient (Np + 1 forward solves), the skin
@@ -30,6 +37,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_MD = ROOT / "BENCHMARKS.md"
+DOCS = ROOT / "docs"
+#: The fixed class3 treatment of the accuracy study (NAME=VALUE, mm).
+TREATMENT = ["mandible.advance_mm=5", "mandible.lateral_mm=1", "maxilla_L.advance_mm=2",
+             "maxilla_R.advance_mm=2"]
 
 
 def _machine() -> str:
@@ -112,6 +123,58 @@ def forward(args) -> None:
     _write_section("forward", body)
 
 
+def _fd_gradient(scene, obj, h: float):
+    """Forward-difference dT/dp (Np,): Np warm forward solves from the current equilibrium,
+    which is restored afterwards."""
+    import numpy as np
+
+    base = scene.eq.snapshot()
+    p, T0 = scene.eq.p.copy(), obj.value()
+    fd = np.empty(len(p))
+    for i in range(len(p)):
+        scene.solve(p + h * np.eye(len(p))[i])
+        fd[i] = (obj.value() - T0) / h
+        scene.eq.restore(base)
+    return fd
+
+
+def _prediction_errors(scene, pred, mags) -> list:
+    """Plain and chord-corrected first-order skin predictions against true equilibria, for
+    the mandible advanced by m and shifted 0.3 m (mm), m in ``mags``; from ``pred.p0``."""
+    import time
+
+    import numpy as np
+
+    base, rows = scene.eq.snapshot(), []
+    names = scene.param_names
+    for mag in mags:
+        dp = np.zeros(len(names))
+        dp[names.index("mandible.advance_mm")] = mag
+        dp[names.index("mandible.lateral_mm")] = 0.3 * mag
+        t = time.perf_counter()
+        for _ in range(100):
+            plain = pred.predict(dp)
+        t_plain = (time.perf_counter() - t) / 100
+        t = time.perf_counter()
+        corr, _ = pred.corrected(dp, steps=2, substeps=8)
+        t_corr = time.perf_counter() - t
+        try:
+            t = time.perf_counter()
+            scene.solve(pred.p0 + dp)
+            t_true = time.perf_counter() - t
+        except Exception as e:  # report, do not stop the benchmark
+            rows.append(dict(mag=mag, error=str(e)[:80]))
+            scene.eq.restore(base)
+            continue
+        true = pred.op.apply(scene.eq.u_eq.array)
+        scene.eq.restore(base)
+        rows.append(dict(mag=mag, disp=np.linalg.norm(true - pred.x0, axis=1).max(),
+                         plain=np.linalg.norm(plain - true, axis=1).max(),
+                         corr=np.linalg.norm(corr - true, axis=1).max(),
+                         t_plain_ms=1e3 * t_plain, t_corr=t_corr, t_true=t_true))
+    return rows
+
+
 def _derivative_costs(res: str) -> dict:
     """Times (s) and errors (mm) of the derivative machinery at one equilibrium, 1 rank."""
     import time
@@ -137,15 +200,9 @@ def _derivative_costs(res: str) -> dict:
     S, mode = obj.jacobian()
     out["S_T"], out["S_T_mode"] = time.perf_counter() - t, mode
     # finite differences: Np forward solves from the equilibrium (warm, predicted)
-    base, h = scene.eq.snapshot(), 1e-3
-    T0, fd = obj.value(), np.empty(len(p))
+    base = scene.eq.snapshot()
     t = time.perf_counter()
-    for i in range(len(p)):
-        e = np.zeros(len(p))
-        e[i] = h
-        scene.solve(p + e)
-        fd[i] = (obj.value() - T0) / h
-        scene.eq.restore(base)
+    fd = _fd_gradient(scene, obj, 1e-3)
     out["fd_gradient"] = time.perf_counter() - t
     out["fd_vs_adjoint_rel_diff"] = float(np.abs(fd - g).max() / np.abs(g).max())
     scene.solve(p + 1e-3)          # a warm forward solve (the plan's line-search trials)
@@ -161,29 +218,7 @@ def _derivative_costs(res: str) -> dict:
     pred = SkinPredictor(scene)
     out["skin_sensitivity"] = time.perf_counter() - t
     out["n_skin"] = len(pred.vertices)
-    rows = []
-    for mag in (2.0, 5.0, 10.0, 20.0):
-        dp = np.zeros(len(p))
-        dp[:2] = [mag, 0.3 * mag]      # mandible advanced and shifted
-        t = time.perf_counter()
-        for _ in range(100):
-            plain = pred.predict(dp)
-        t_plain = (time.perf_counter() - t) / 100
-        t = time.perf_counter()
-        corr, _ = pred.corrected(dp, steps=2, substeps=8)
-        t_corr = time.perf_counter() - t
-        try:
-            scene.solve(dp)
-        except Exception as e:  # report, do not stop the benchmark
-            rows.append(dict(mag=mag, error=str(e)[:80]))
-            scene.eq.restore(base)
-            continue
-        true = pred.op.apply(scene.eq.u_eq.array)
-        scene.eq.restore(base)
-        rows.append(dict(mag=mag, disp=np.linalg.norm(true - pred.x0, axis=1).max(),
-                         plain=np.linalg.norm(plain - true, axis=1).max(),
-                         corr=np.linalg.norm(corr - true, axis=1).max(),
-                         t_plain_ms=1e3 * t_plain, t_corr=t_corr))
+    rows = _prediction_errors(scene, pred, (2.0, 5.0, 10.0, 20.0))
     out["predictions"] = rows
     return out
 
@@ -246,6 +281,270 @@ def plan(args) -> None:
     _write_section("plan", "\n".join(lines))
 
 
+def _plot(name: str, draw) -> str:
+    """Draw with ``draw(plt)`` and save ``docs/<name>.png`` atomically; returns its path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    DOCS.mkdir(exist_ok=True)
+    draw(plt)
+    plt.tight_layout()
+    tmp = DOCS / f".{name}.part.png"
+    plt.savefig(tmp, dpi=110)
+    plt.close("all")
+    os.replace(tmp, DOCS / f"{name}.png")
+    return f"docs/{name}.png"
+
+
+def _command(args) -> str:
+    return "python3 scripts/bench.py " + " ".join(sys.argv[1:]) if sys.argv[1:] else \
+        f"python3 scripts/bench.py {args.what}"
+
+
+def _header(title: str, args) -> list:
+    return [f"## {title}", "", f"Command: `{_command(args)}`", "", f"Machine: {_machine()}.", ""]
+
+
+def _table(head: list, rows: list) -> list:
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+            *("| " + " | ".join(map(str, r)) + " |" for r in rows)]
+
+
+def acc_mesh(args) -> None:
+    """Mesh convergence on class3 with `TREATMENT`: forward landmark error and planned p."""
+    import numpy as np
+
+    levels = args.resolutions.split(",")
+    fwd = {r: _simulate(r, "direct", args.ranks_mesh, args=[
+        "--case", "class3", "--resolution", r, "--p", *TREATMENT]) for r in levels}
+    for r, rep in fwd.items():
+        if "error" in rep:
+            raise SystemExit(f"forward at {r} failed: {rep['error']}")
+    disp = {r: {n: np.subtract(v["landmarks"][n], v["landmarks_rest"][n])
+                for n in v["landmarks"]} for r, v in fwd.items()}
+    used = [t.split("=")[0] for t in TREATMENT]
+    p_star = np.array([float(t.split("=")[1]) for t in TREATMENT])
+    goal = ["Pg", "Me", "Li", "Ls", "Sn"]
+    rows, plans = [], {}
+    for r in levels:
+        err = np.array([np.linalg.norm(disp[r][n] - disp[levels[-1]][n]) for n in disp[r]])
+        # the same goal on every mesh: each mesh's rest landmarks + the reference's motion
+        with tempfile.TemporaryDirectory() as d:
+            tfile = Path(d) / "targets.json"
+            tfile.write_text(json.dumps({n: (np.array(fwd[r]["landmarks_rest"][n])
+                                             + disp[levels[-1]][n]).tolist() for n in goal}))
+            pl = _simulate(r, "direct", args.ranks_mesh, script="plan.py", args=[
+                "--case", "class3", "--resolution", r, "--targets", str(tfile),
+                "--params-used", ",".join(used), "--tikhonov", "0", "--ftol", "1e-8"])
+        if "error" in pl:
+            raise SystemExit(f"plan at {r} failed: {pl['error']}")
+        plans[r] = pl
+        t = fwd[r]["timings_s"]
+        rows.append([r, fwd[r]["n_vertices"], f"{t['solve']:.1f}", f"{err.max():.3f}",
+                     f"{err.mean():.3f}", f"{pl['timings_s']['total']:.1f}",
+                     " ".join(f"{v:.2f}" for v in pl["params_optimal"]),
+                     f"{np.abs(np.array(pl['params_optimal']) - p_star).max():.2f}",
+                     f"{pl['mean_distance_after_mm']:.3f}"])
+        print(rows[-1], flush=True)
+    ts = [fwd[r]["timings_s"]["solve"] for r in levels[:-1]]
+    errs = [float(rw[3]) for rw in rows[:-1]]
+
+    def draw(plt):
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+        ax[0].loglog(ts, errs, "o-")
+        for r, x, y in zip(levels, ts, errs):
+            ax[0].annotate(r, (x, y))
+        ax[0].axhline(0.1, ls="--", c="gray", label="0.1 mm (clinically irrelevant)")
+        ax[0].set(xlabel="forward solve wall time (s)", ylabel=f"max landmark error vs "
+                  f"{levels[-1]} (mm)", title="forward, class3, fixed treatment")
+        ax[0].legend()
+        tp = [plans[r]["timings_s"]["total"] for r in levels]
+        for i, n in enumerate(used):
+            ax[1].semilogx(tp, [plans[r]["params_optimal"][i] for r in levels], "o-", label=n)
+        ax[1].set(xlabel="plan wall time (s)", ylabel="planned p (mm)",
+                  title="planned treatment, same goal")
+        ax[1].legend(fontsize=7)
+
+    png = _plot("mesh_convergence", draw)
+    body = _header("Accuracy: mesh convergence (class3)", args) + [
+        f"Treatment `{' '.join(TREATMENT)}`, {args.ranks_mesh} rank(s). Error: landmark "
+        f"displacement against `{levels[-1]}` (all 9 landmarks). Plan: the reference's "
+        f"landmark motion of {', '.join(goal)} added to each mesh's rest landmarks, "
+        f"parameters {', '.join(used)} (truth p* = {p_star.tolist()}), α = 0.", "",
+        *_table(["resolution", "vertices", "forward s", "max landmark err mm",
+                 "mean err mm", "plan s", "planned p", "max abs(p − p*)",
+                 "plan mean distance mm"], rows), "", f"![mesh convergence]({png})"]
+    _write_section("accuracy-mesh", "\n".join(body))
+
+
+def acc_tolerance(args) -> None:
+    """Newton tolerances (xtol mm, frtol) against landmark error and time, from rest."""
+    import time
+
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT))
+    from inverse.scene import Scene
+
+    settings = [(10.0 ** -k, 10.0 ** -(k + 1)) for k in range(0, 8)]
+    out = {}
+    for res in args.resolutions_tol.split(","):
+        curve = []
+        for xtol, frtol in [(1e-10, 1e-12), *settings]:   # reference first
+            scene = Scene.from_case("class3", res, newton=dict(xtol=xtol, frtol=frtol))
+            p = scene.param_vector(dict(t.split("=") for t in TREATMENT))
+            t = time.perf_counter()
+            st = scene.solve(p)
+            dt = time.perf_counter() - t
+            lm = np.array(list(scene.landmarks().values()))
+            if not curve:
+                ref = lm
+            curve.append((xtol, frtol, st.newton_iterations, st.factorisations, dt,
+                          float(np.linalg.norm(lm - ref, axis=1).max()),
+                          scene.active_goal_error()))
+            print(res, curve[-1], flush=True)
+            scene.eq.destroy()
+        out[res] = curve[1:]
+    rows = [[res, f"{x:.0e}", f"{f:.0e}", n, nf, f"{dt:.2f}", f"{e:.1e}", f"{g:.4f}"]
+            for res, c in out.items() for x, f, n, nf, dt, e, g in c]
+    chosen = {res: max((c for c in curve if c[5] < 1e-3), key=lambda c: c[0])
+              for res, curve in out.items()}
+
+    def draw(plt):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for res, c in out.items():
+            ax.loglog([v[4] for v in c], [max(v[5], 1e-12) for v in c], "o-", label=res)
+            for v in c:
+                ax.annotate(f"{v[0]:.0e}", (v[4], max(v[5], 1e-12)), fontsize=7)
+        ax.axhline(1e-3, ls="--", c="gray", label="1e-3 mm")
+        ax.set(xlabel="equilibrium wall time (s)", ylabel="max landmark error (mm)",
+               title="Newton tolerance (labels: xtol mm; frtol = xtol/10)")
+        ax.legend()
+
+    png = _plot("tolerance", draw)
+    body = _header("Accuracy: Newton tolerances", args) + [
+        f"class3, `{' '.join(TREATMENT)}` from rest, 1 rank, direct preset. Newton stops when "
+        "the step is below `xtol` (inf-norm, mm) and the residual is below `frtol` × the load "
+        "of the step. Error: max over the 9 landmarks against xtol = 1e-10, frtol = 1e-12.",
+        "", *_table(["resolution", "xtol mm", "frtol", "Newton its", "factorisations",
+                     "solve s", "max landmark err mm", "active goal err mm"], rows), "",
+        "Cheapest setting with landmark error < 1e-3 mm: " + "; ".join(
+            f"{res}: xtol = {c[0]:.0e} mm, frtol = {c[1]:.0e} ({c[2]} Newton steps, "
+            f"{c[4]:.2f} s)" for res, c in chosen.items()) + ".", "",
+        f"![tolerance]({png})"]
+    _write_section("accuracy-tolerance", "\n".join(body))
+
+
+def acc_prediction(args) -> None:
+    """First-order skin prediction error against |dp|, plain and corrected."""
+    sys.path.insert(0, str(ROOT))
+    from inverse.explore import SkinPredictor
+    from inverse.scene import Scene
+    from inverse.treatment import PLAN_PARAMS
+
+    mags = [1.0, 2.0, 3.0, 5.0, 7.0, 10.0, 14.0, 20.0]
+    out = {}
+    for res in args.resolutions_pred.split(","):
+        scene = Scene.from_case("class3-asym", res, params_used=PLAN_PARAMS)
+        pred = SkinPredictor(scene)
+        out[res] = [r for r in _prediction_errors(scene, pred, mags) if "error" not in r]
+        scene.eq.destroy()
+    rows = [[res, f"{r['mag']:g}", f"{r['disp']:.2f}", f"{r['plain']:.3f}",
+             f"{r['t_plain_ms']:.3f}", f"{r['corr']:.3f}", f"{r['t_corr']:.2f}",
+             f"{r['t_true']:.2f}"] for res, rs in out.items() for r in rs]
+
+    def draw(plt):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for res, rs in out.items():
+            d = [r["disp"] for r in rs]
+            ax.loglog(d, [r["plain"] for r in rs], "o-", label=f"{res} plain")
+            ax.loglog(d, [r["corr"] for r in rs], "s--", label=f"{res} corrected")
+        ax.set(xlabel="max skin displacement (mm)", ylabel="max skin error (mm)",
+               title="first-order prediction from the rest face")
+        ax.legend()
+
+    png = _plot("prediction", draw)
+    body = _header("Accuracy: first-order prediction against |dp|", args) + [
+        "class3-asym from the rest face; the mandible advanced by m mm and shifted 0.3 m mm. "
+        "Max skin error against the true equilibrium. Corrected: 8 parts (doubled while one "
+        "inverts an element, up to 32; beyond that it falls back to plain) × 2 chord-Newton "
+        "steps with the kept factorisation.", "",
+        *_table(["resolution", "m mm", "max skin displacement mm", "plain error mm",
+                 "plain ms/call", "corrected error mm", "corrected s", "true equilibrium s"],
+                rows), "", f"![prediction]({png})"]
+    _write_section("accuracy-prediction", "\n".join(body))
+
+
+def acc_gradient(args) -> None:
+    """Adjoint gradient against forward differences: cost against Np, FD error against h."""
+    import time
+
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT))
+    from inverse.scene import Scene
+    from inverse.treatment import rigid_treatment
+
+    res = args.resolution_grad
+    names = rigid_treatment().names
+    cost = []
+    for n_p in (2, 6, 12, 18):
+        scene = Scene.from_case("class3-asym", res, params_used=names[:n_p])
+        p = 0.5 * np.ones(n_p)
+        scene.solve(p)
+        obj = scene.objective(scene.default_targets())
+        t = time.perf_counter()
+        g = obj.gradient()
+        t_adj = time.perf_counter() - t
+        t = time.perf_counter()
+        fd = _fd_gradient(scene, obj, 1e-3)
+        t_fd = time.perf_counter() - t
+        cost.append((n_p, t_adj, t_fd, float(np.abs(fd - g).max() / np.abs(g).max())))
+        print(cost[-1], flush=True)
+        if n_p == 6:   # FD error against h at this equilibrium
+            hs = [10.0 ** -k for k in range(0, 8)]
+            h_err = [float(np.abs(_fd_gradient(scene, obj, h) - g).max() / np.abs(g).max())
+                     for h in hs]
+            print(list(zip(hs, h_err)), flush=True)
+        scene.eq.destroy()
+
+    def draw(plt):
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+        ax[0].semilogy([c[0] for c in cost], [c[1] for c in cost], "o-", label="adjoint")
+        ax[0].semilogy([c[0] for c in cost], [c[2] for c in cost], "s-",
+                       label="forward differences")
+        ax[0].set(xlabel="number of parameters Np", ylabel="gradient wall time (s)",
+                  title=f"class3-asym {res}")
+        ax[0].legend()
+        ax[1].loglog(hs, h_err, "o-")
+        ax[1].set(xlabel="FD step h (parameter units)",
+                  ylabel="relative error vs adjoint", title="FD accuracy, Np = 6")
+
+    png = _plot("gradient", draw)
+    body = _header("Accuracy: adjoint gradient against finite differences", args) + [
+        f"class3-asym {res}, default goal (7 landmarks), the first Np rigid parameters, at "
+        "p = 0.5 (units). Adjoint: one tangent solve with the kept factorisation. FD: Np "
+        "warm-started forward solves (h = 1e-3).", "",
+        *_table(["Np", "adjoint s", "FD s", "FD/adjoint", "FD vs adjoint (rel.)"],
+                [[n, f"{a:.3f}", f"{f:.2f}", f"{f / a:.0f}x", f"{e:.1e}"]
+                 for n, a, f, e in cost]), "",
+        "FD error against h (Np = 6): " + ", ".join(f"h = {h:.0e}: {e:.1e}"
+                                                    for h, e in zip(hs, h_err)) + ".", "",
+        f"![gradient]({png})"]
+    _write_section("accuracy-gradient", "\n".join(body))
+
+
+def accuracy(args) -> None:
+    parts = {"mesh": acc_mesh, "tolerance": acc_tolerance, "prediction": acc_prediction,
+             "gradient": acc_gradient}
+    for part in args.parts.split(","):
+        if part not in parts:
+            raise SystemExit(f"unknown part {part!r}; choose from {list(parts)}")
+        parts[part](args)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -257,8 +556,16 @@ def main():
     pl = sub.add_parser("plan", help="derivatives, exploration and whole plans")
     pl.add_argument("--resolutions", default="coarse,paper")
     pl.add_argument("--ranks", default="1,2")
+    a = sub.add_parser("accuracy", help="run time against error (plots in docs/)")
+    a.add_argument("--parts", default="mesh,tolerance,prediction,gradient")
+    a.add_argument("--resolutions", default="tiny,coarse,medium,paper,fine",
+                   help="mesh part; the last is the reference")
+    a.add_argument("--ranks-mesh", type=int, default=2)
+    a.add_argument("--resolutions-tol", default="medium,paper")
+    a.add_argument("--resolutions-pred", default="coarse,medium")
+    a.add_argument("--resolution-grad", default="medium")
     args = ap.parse_args()
-    {"forward": forward, "plan": plan}[args.what](args)
+    {"forward": forward, "plan": plan, "accuracy": accuracy}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from scripts._common import (  # noqa: E402
     add_scene_args,
     load_params,
     parse,
+    peak_rss_mb,
     run_main,
     scene_from_args,
 )
@@ -62,10 +63,12 @@ def main(argv=None):
         "n_vertices": scene.domain.n_vertices, "n_cells": scene.domain.n_cells,
         "n_ranks": comm.size, "param_names": scene.param_names, "params": p,
         "landmarks": moved, "landmarks_rest": rest, "active_goal_error_max_mm": err,
-        "newton_iterations": stats.newton_iterations, "converged": True,
+        "newton_iterations": stats.newton_iterations,
+        "linear_iterations": stats.linear_iterations, "converged": True,
         "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
         "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
         "solver": scene.eq.solver_name, "timings_s": timings,
+        "peak_rss_mb": peak_rss_mb(comm),
     }
     if args.report:
         write_json(args.report, report, comm)

@@ -122,8 +122,8 @@ def test_plan_same_on_1_and_2_ranks(tmp_path):
     used = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
     sim = tmp_path / "sim.json"
     r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
-                        used, "--p", "mandible.advance_mm=-4", "mandible.lateral_mm=-2",
-                        "mandible.yaw_deg=-3", "maxilla_L.advance_mm=1.5", "--report",
+                        used, "--p", "mandible.advance_mm=-3", "mandible.lateral_mm=-1.5",
+                        "mandible.yaw_deg=-2", "maxilla_L.advance_mm=1.5", "--report",
                         str(sim)])
     assert r.returncode == 0, r.stderr[-2000:]
     targets = tmp_path / "t.json"
@@ -139,7 +139,7 @@ def test_plan_same_on_1_and_2_ranks(tmp_path):
     assert reports[2]["n_ranks"] == 2
     for rep in reports.values():
         assert rep["converged"] and rep["mean_distance_after_mm"] < 0.01
-        np.testing.assert_allclose(rep["params_optimal"], [-4, -2, -3, 1.5], rtol=1e-3)
+        np.testing.assert_allclose(rep["params_optimal"], [-3, -1.5, -2, 1.5], rtol=1e-3)
     np.testing.assert_allclose(reports[2]["params_optimal"], reports[1]["params_optimal"],
                                rtol=1e-6, atol=1e-8)
 
