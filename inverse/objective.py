@@ -27,6 +27,9 @@ log = logging.getLogger(__name__)
 
 #: A target farther than this from the landmark's rest position gets a warning, mm.
 FAR_TARGET_MM = 30.0
+#: Farther than this (mm) it is refused: no surgery moves the face that far; most likely
+#: the coordinates are in other units (m, cm) or another frame.
+ABSURD_TARGET_MM = 100.0
 
 
 def load_targets(source, rest: dict, names=None, far_mm: float = FAR_TARGET_MM):
@@ -66,6 +69,10 @@ def load_targets(source, rest: dict, names=None, far_mm: float = FAR_TARGET_MM):
         if not np.all(np.isfinite(x)):
             raise InputError(f"target {n} = {x.tolist()} is not finite")
         d = float(np.linalg.norm(x - rest[n]))
+        if d > ABSURD_TARGET_MM:
+            raise InputError(f"target {n} is {d:.0f} mm from its rest position (more than "
+                             f"{ABSURD_TARGET_MM:g} mm): targets are in mm, in the mesh's "
+                             "frame")
         if d > far_mm:
             warnings.warn(f"target {n} is {d:.1f} mm from its rest position (more than "
                           f"{far_mm:g} mm: outside the face?)", stacklevel=2)

@@ -95,7 +95,8 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
 
     Stops when the projected gradient is below ``gtol`` (mm² per unit), T decreases by less
     than ``ftol`` relative, the step is below ``xtol`` (units), or T < 1e-14 mm². A step
-    is at most ``max_step`` (mm or degrees) in any parameter.
+    is at most ``max_step`` (mm or degrees) in any parameter. ``callback(p, entry)`` is
+    called at the start and after every accepted iteration with its history entry.
     """
     t_start = time.perf_counter()
     eq = scene.eq
@@ -124,6 +125,8 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
                     step=0.0, alpha=0.0, mu=mu, newton_iterations=newton,
                     forward_solves=forward_solves, time_s=time.perf_counter() - t_start)]
     _log(history[-1])
+    if callback is not None:
+        callback(p.copy(), history[-1])
     converged, reason, it = False, "iteration limit", 0
     for it in range(1, max_iterations + 1):
         if T < 1e-14:
@@ -175,7 +178,7 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
             time_s=time.perf_counter() - t_start))
         _log(history[-1])
         if callback is not None:
-            callback(p, history[-1])
+            callback(p.copy(), history[-1])
         if T_prev - T <= ftol * T_prev:
             converged, reason = True, "relative decrease below ftol"
             break

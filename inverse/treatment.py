@@ -20,6 +20,7 @@ Sculpted blendshapes are the difference between a modified and the rest bone sur
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 
@@ -106,16 +107,14 @@ class Treatment:
         return Treatment([lookup[n] for n in names])
 
     def vector(self, values: dict) -> np.ndarray:
-        """Parameter vector (Np,) from ``{name: value}``; missing names are 0."""
+        """Parameter vector (Np,) from ``{name: value}``; missing names are 0. A value is a
+        number in the parameter's unit, or a string with that unit ("5", "5 mm", "3deg")."""
         unknown = [k for k in values if k not in self.names]
         if unknown:
             raise InputError(f"unknown parameter(s) {unknown}; known: {self.names}")
         p = np.zeros(len(self.params))
         for k, v in values.items():
-            try:
-                p[self.names.index(k)] = float(v)
-            except (TypeError, ValueError):
-                raise InputError(f"parameter {k} = {v!r} is not a number") from None
+            p[self.names.index(k)] = _number_in(v, self.params[self.names.index(k)])
         if not np.all(np.isfinite(p)):
             raise InputError(f"parameters must be finite: {dict(zip(self.names, p))}")
         return p
@@ -133,6 +132,21 @@ class Treatment:
                 if p.segment == name:
                     B[blocks, :, i] = p.values(domain.X[blocks], np.asarray(domain.pivots[name]))
         return B.reshape(n * 3, -1)
+
+
+def _number_in(value, param: "Param") -> float:
+    """``value`` (number or "number [unit]") as a float in ``param.unit``, else `InputError`."""
+    if not isinstance(value, bool):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            pass
+    m = re.fullmatch(r"\s*([-+]?\d*\.?\d+(?:[eE][-+]?\d+)?)\s*([a-zA-Z]+)\s*", str(value))
+    if not m:
+        raise InputError(f"parameter {param.name} = {value!r} is not a number")
+    if m.group(2) != param.unit:
+        raise InputError(f"parameter {param.name} is in {param.unit}, got {value!r}")
+    return float(m.group(1))
 
 
 def rigid_treatment(segments=("mandible", "maxilla_L", "maxilla_R"), motions=None) -> Treatment:

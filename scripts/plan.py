@@ -45,6 +45,34 @@ def plan_report(scene, result, targets, before, comm) -> dict:
     }
 
 
+def _load_checkpoint(path, signature: dict, comm) -> dict:
+    """The plan state saved by an earlier run, checked against this run's ``signature``."""
+    import json
+
+    from meshes.errors import InputError
+
+    if not path:
+        raise InputError("--resume needs --checkpoint FILE (or --report)")
+    state, err = None, None
+    if comm.rank == 0:
+        try:
+            with open(path) as fh:
+                state = json.load(fh)
+            if not isinstance(state, dict) or not state.get("history"):
+                err = f"checkpoint {path} holds no plan state"
+        except (OSError, ValueError) as e:
+            err = f"cannot read checkpoint {path}: {e}"
+    state, err = comm.bcast((state, err), root=0)
+    if err:
+        raise InputError(err)
+    old = state.get("signature", {})
+    for key, value in json.loads(json.dumps(signature)).items():
+        if old.get(key) != value:
+            raise InputError(f"checkpoint {path} belongs to another plan: its {key} is "
+                             f"{old.get(key)!r}, this run's is {value!r}")
+    return state
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -58,10 +86,16 @@ def main(argv=None):
     ap.add_argument("--ftol", type=float, default=1e-3,
                     help="stop when T decreases by less than this fraction in an iteration")
     ap.add_argument("--max-iterations", type=int, default=20)
+    ap.add_argument("--checkpoint", help="JSON file rewritten (atomically) after every "
+                    "Gauss-Newton iteration with p and the history (default: next to --report)")
+    ap.add_argument("--resume", action="store_true",
+                    help="continue the plan saved in --checkpoint (same case and goal)")
     ap.add_argument("--out", help="output folder for XDMF of the planned result")
     ap.add_argument("--report", help="JSON report path")
     args, comm = parse(ap, argv)
     import time
+
+    import numpy as np
 
     from fem.io import write_json
 
@@ -76,8 +110,36 @@ def main(argv=None):
     before = scene.landmarks(names)
     from inverse.planner import gauss_newton
 
-    result = gauss_newton(scene, obj, max_iterations=args.max_iterations, ftol=args.ftol)
+    ckpt = args.checkpoint or (args.report + ".checkpoint.json" if args.report else None)
+    state = {"signature": {"case": scene.case or scene.domain.name,
+                           "resolution": scene.resolution,
+                           "n_vertices": scene.domain.n_vertices,
+                           "param_names": scene.param_names, "targets": targets,
+                           "tikhonov": args.tikhonov},
+             "params_initial": np.zeros(len(scene.param_names)), "before": before,
+             "params": None, "history": []}
+    if args.resume:
+        state = _load_checkpoint(ckpt, state["signature"], comm)
+    offset = max(len(state["history"]) - 1, 0)    # iterations already done
+
+    def save(p, h):   # every accepted iteration (and the start): p and the history so far
+        if state["history"] and h["iteration"] == 0:
+            return    # a resumed run starts where the checkpoint ends
+        state["history"].append(dict(h, iteration=h["iteration"] + offset))
+        state["params"] = p
+        write_json(ckpt, state, comm)
+
+    mu = state["history"][-1]["mu"] if state["history"] else 1e-9
+    result = gauss_newton(scene, obj, p0=state["params"], mu=mu, ftol=args.ftol,
+                          max_iterations=args.max_iterations - offset,
+                          callback=save if ckpt else None)
+    if ckpt:          # one plan across runs: the checkpoint's iterations, then this run's
+        result.history = state["history"]
+        result.gn_iterations += offset
+        result.params_initial = np.asarray(state["params_initial"], dtype=float)
+        before = {n: np.asarray(v, dtype=float) for n, v in state["before"].items()}
     report = plan_report(scene, result, targets, before, comm)
+    report["resumed_from_iteration"] = offset if args.resume else None
     report["timings_s"] = dict(report["timings_s"], mesh=scene.timings["mesh"],
                                compile=scene.timings["compile"])
     if args.out:

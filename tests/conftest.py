@@ -35,5 +35,17 @@ def mandible_scene(tiny_anatomy):
 
 
 @pytest.fixture
+def tight_scene(mandible_scene):
+    """The mandible scene with Newton tolerances far below the defaults (for rate and
+    finite-difference checks), reset to rest and the defaults afterwards."""
+    eq = mandible_scene.eq
+    tol = eq.xtol, eq.frtol
+    eq.xtol, eq.frtol = 1e-10, 1e-10
+    yield mandible_scene
+    eq.xtol, eq.frtol = tol
+    mandible_scene.solve(np.zeros(6))
+
+
+@pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -71,7 +71,8 @@ def test_jacobian_matches_finite_differences(eq, rng):
     assert errs[1] < errs[0]   # central differences converge, O(h^2)
 
 
-def test_newton_converges_quadratically(mandible_scene):
+def test_newton_converges_quadratically(tight_scene):
+    mandible_scene = tight_scene
     mandible_scene.solve(np.zeros(6))
     p = mandible_scene.param_vector({"mandible.advance_mm": 6.0})
     st = mandible_scene.eq.solve(p, predict=False)   # from rest: a long Newton path

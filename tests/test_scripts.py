@@ -66,12 +66,32 @@ def test_simulate_bad_input_writes_nothing(tmp_path, args, match):
     assert not out.exists() or not any(out.iterdir())
 
 
-def test_simulate_bad_params_file(tmp_path):
-    bad = tmp_path / "p.json"
-    bad.write_text("{not json")
-    r = _run(SIM + ["--params", str(bad), "--report", str(tmp_path / "r.json")])
-    assert r.returncode == 2 and "cannot read parameter file" in r.stderr
-    assert not (tmp_path / "r.json").exists()
+@pytest.mark.parametrize("script,flag,content,match", [
+    ("sim", "--params", "{not json", "cannot read parameter file"),
+    ("sim", "--params", "[1, 2]", "must hold a JSON object"),
+    ("sim", "--params", '{"mandible.advance_mm": NaN}', "finite"),
+    ("sim", "--params", '{"mandible.advance_mm": "5 cm"}', "is in mm"),
+    ("sim", "--params", '{"mandible.advance_m": 0.005}', "unknown parameter"),
+    ("sim", "--mesh", None, "does not exist or is not a file"),
+    ("plan", "--targets", "{not json", "cannot read targets file"),
+    ("plan", "--targets", '[[0, 0, 0]]', "must be a JSON object"),
+    ("plan", "--targets", '{"Pg": [0, Infinity, 1]}', "not finite"),
+    ("plan", "--targets", '{"Pg": [0.0, 0.1, -0.06]}', "targets are in mm"),
+    ("plan", "--targets", '{"Pg": "here"}', "not a 3-vector"),
+])
+def test_bad_input_files_write_nothing(tmp_path, script, flag, content, match):
+    """Each row of the README's bad-input table for files: a clear error, exit 2, no output."""
+    bad = tmp_path / "in.json"
+    if content is None:
+        bad = tmp_path   # a folder, not a file
+    else:
+        bad.write_text(content)
+    out = tmp_path / "out"
+    cmd = SIM if script == "sim" else PLAN
+    r = _run(cmd + [flag, str(bad), "--out", str(out), "--report", str(out / "r.json")])
+    assert r.returncode == 2, r.stderr[-1000:]
+    assert match in r.stderr
+    assert not out.exists() or not any(out.iterdir())
 
 
 def test_list_params():
@@ -144,6 +164,31 @@ def test_plan_same_on_1_and_2_ranks(tmp_path):
                                rtol=1e-6, atol=1e-8)
 
 
+def test_plan_checkpoint_and_resume(tmp_path):
+    """A plan cut after 2 iterations and resumed from its checkpoint ends where the same
+    plan run at once ends, with one continuous history; a checkpoint of another plan is
+    refused."""
+    args = PLAN + ["--tikhonov", "0.01", "--ftol", "1e-9"]
+    full, part, ck = tmp_path / "full.json", tmp_path / "part.json", tmp_path / "ck.json"
+    r = _run(args + ["--report", str(full)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = _run(args + ["--max-iterations", "2", "--checkpoint", str(ck), "--report", str(part)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    saved = json.loads(ck.read_text())
+    assert [h["iteration"] for h in saved["history"]] == [0, 1, 2]
+    r = _run(args + ["--checkpoint", str(ck), "--resume", "--report", str(part)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    a, b = json.loads(full.read_text()), json.loads(part.read_text())
+    assert b["resumed_from_iteration"] == 2
+    assert a["gn_iterations"] > 2 and b["gn_iterations"] == a["gn_iterations"]
+    assert [h["iteration"] for h in b["history"]] == list(range(b["gn_iterations"] + 1))
+    np.testing.assert_allclose(b["params_optimal"], a["params_optimal"], atol=1e-6)
+    np.testing.assert_allclose(b["params_initial"], a["params_initial"])
+    assert b["mean_distance_before_mm"] == pytest.approx(a["mean_distance_before_mm"])
+    r = _run(args + ["--landmarks", "Pg,Li", "--checkpoint", str(ck), "--resume"])
+    assert r.returncode == 2 and "belongs to another plan" in r.stderr
+
+
 @pytest.mark.parametrize("args,match", [
     (["--landmarks", "Pg,Chin"], "unknown landmark"),
     (["--landmarks", ","], "at least one landmark"),
@@ -188,7 +233,8 @@ def test_explore_saves_sensitivities_and_compares(tmp_path):
 
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
 def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
-    """A run stopped by a signal exits cleanly and leaves no half-written file."""
+    """A run stopped by a signal exits cleanly and leaves no half-written file; what is
+    kept is the checkpoint after the last finished iteration."""
     import select
     import signal
     import time
@@ -207,4 +253,9 @@ def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err[-1000:]
     assert "interrupted" in err
-    assert not out.exists() or not any(out.iterdir())   # nothing, not even a .partial dir
+    # no report, no XDMF, no .partial dir: only the checkpoint of the iterations done, whole
+    assert sorted(f.name for f in out.iterdir()) == ["r.json.checkpoint.json"]
+    saved = json.loads((out / "r.json.checkpoint.json").read_text())
+    its = [h["iteration"] for h in saved["history"]]
+    assert its and its == list(range(len(its)))     # the start and each iteration done
+    assert len(saved["params"]) == len(saved["signature"]["param_names"])
