@@ -325,14 +325,17 @@ class Equilibrium:
             self._stats.lagged += 1
             return
         self._stats.factorisations += 1
-        if not self._check_inertia:
+        if pc.getType() != "cholesky":
             return
-        while True:
+        while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
             t = time.perf_counter()
             self.ksp.setOperators(A)
-            self.ksp.getPC().setUp()
+            try:
+                pc.setUp()
+                n_neg = pc.getFactorMatrix().getInertia()[0] if self._check_inertia else 0
+            except PETSc.Error:
+                n_neg = -1
             self._stats.factor += time.perf_counter() - t
-            n_neg = self.ksp.getPC().getFactorMatrix().getInertia()[0]
             if n_neg == 0:
                 break
             if self._shift >= self.shift_max * self._diag_scale:
