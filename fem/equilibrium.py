@@ -97,9 +97,10 @@ class Equilibrium:
             ``-<prefix>ksp_type ...`` on the command line or in ``options``.
         xtol: stop when a full (unshifted) Newton step is below xtol (inf-norm, mm) and the
             residual is below ``frtol`` x the load of the step; or when the residual norm is
-            below ``atol`` (mN). The defaults (0.1 mm, 1e-2) are the cheapest with landmarks
-            within 1e-3 mm of a 1e-10 mm solve (BENCHMARKS.md, tolerance curve): Newton
-            converges quadratically, so the error after a 0.1 mm step is ~1e-7 mm.
+            below ``atol`` (mN). The defaults (0.1 mm, 1e-2) keep landmarks within 1e-3 mm
+            of a 1e-10 mm solve (BENCHMARKS.md, tolerance curve: ~1e-7 mm, Newton converges
+            quadratically), and a treatment smaller than 0.1 mm, which stops after its
+            first, linear step, errs ~3e-4 mm.
         max_it: Newton iterations per SNES solve.
         shift_max: largest diagonal shift of the inertia check, in units of the median
             diagonal of K.
