@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from mpi4py import MPI
 
+import contextlib
 import json
 import os
 import shutil
@@ -17,26 +18,45 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _tmpdir(target: Path, comm: MPI.Comm) -> Path:
-    target.parent.mkdir(parents=True, exist_ok=True) if comm.rank == 0 else None
-    name = tempfile.mkdtemp(prefix=".partial-", dir=target.parent) if comm.rank == 0 else None
-    return Path(comm.bcast(name, root=0))
+#: Writes in progress, and a signal that arrived during one (see `interrupt_now`).
+_writing = {"depth": 0, "pending": None}
 
 
-def _discard(tmp: Path, comm: MPI.Comm):
-    """Remove a temporary folder after a failed or interrupted write (local, no barrier)."""
-    if comm.rank == 0:
-        shutil.rmtree(tmp, ignore_errors=True)
+def interrupt_now(signum) -> bool:
+    """For a SIGINT/SIGTERM handler: True if the run may be interrupted now; False while a
+    write is in progress, whose end then raises KeyboardInterrupt instead."""
+    if _writing["depth"]:
+        _writing["pending"] = signum
+        return False
+    return True
 
 
-def _commit(tmp: Path, target_dir: Path, comm: MPI.Comm):
-    comm.Barrier()
-    if comm.rank == 0:
-        for f in sorted(tmp.iterdir()):
-            os.replace(f, target_dir / f.name)
-        shutil.rmtree(tmp, ignore_errors=True)
-    comm.Barrier()
+@contextlib.contextmanager
+def _staged(target: Path, comm: MPI.Comm):
+    """Yield a hidden temporary folder beside ``target``; on success its files are renamed
+    into ``target``'s folder (rank 0, between barriers). The folder is removed however the
+    block ends, and an interrupt (`interrupt_now`) waits for that: a write is finished and
+    renamed, or leaves nothing."""
+    _writing["depth"] += 1
+    tmp = None
+    try:
+        if comm.rank == 0:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            tmp = tempfile.mkdtemp(prefix=".partial-", dir=target.parent)
+        tmp = Path(comm.bcast(tmp, root=0))
+        yield tmp
+        comm.Barrier()
+        if comm.rank == 0:
+            for f in sorted(tmp.iterdir()):
+                os.replace(f, target.parent / f.name)
+        comm.Barrier()
+    finally:
+        if comm.rank == 0 and tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        _writing["depth"] -= 1
+        signum, _writing["pending"] = _writing["pending"], None
+        if signum is not None and not _writing["depth"]:
+            raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _jsonable(x):
@@ -50,14 +70,9 @@ def _jsonable(x):
 def _write_on_root(path, write, comm: MPI.Comm) -> None:
     """Rank 0 calls ``write(tmp_path)``; the file is then renamed to ``path``."""
     path = Path(path)
-    tmp = _tmpdir(path, comm)
-    try:
+    with _staged(path, comm) as tmp:
         if comm.rank == 0:
             write(tmp / path.name)
-    except BaseException:
-        _discard(tmp, comm)
-        raise
-    _commit(tmp, path.parent, comm)
 
 
 def write_json(path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
@@ -85,21 +100,17 @@ def write_xdmf(path, mesh, functions=(), meshtags=(), node_displacement=None,
 
     comm = comm or mesh.comm
     path = Path(path)
-    tmp = _tmpdir(path, comm)
     x = mesh.geometry.x
     if node_displacement is not None:
         x[:, :3] += node_displacement
     try:
-        with dolfinx.io.XDMFFile(comm, str(tmp / path.name), "w") as f:
+        with _staged(path, comm) as tmp, \
+                dolfinx.io.XDMFFile(comm, str(tmp / path.name), "w") as f:
             f.write_mesh(mesh)
             for tags in meshtags:
                 f.write_meshtags(tags)
             for fn in functions:
                 f.write_function(fn)
-    except BaseException:
-        _discard(tmp, comm)
-        raise
     finally:
         if node_displacement is not None:
             x[:, :3] -= node_displacement
-    _commit(tmp, path.parent, comm)

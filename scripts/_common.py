@@ -101,10 +101,14 @@ def run_main(main) -> int:
 
     from meshes.errors import OrthodiffError
 
-    def interrupted(signum, frame):   # SIGTERM like Ctrl-C: unwind, discard partial output
-        raise KeyboardInterrupt(f"signal {signum}")
+    def interrupted(signum, frame):   # SIGTERM like Ctrl-C: unwind, once a write is done
+        io = sys.modules.get("fem.io")     # not imported yet: no write in progress
+        if io is None or io.interrupt_now(signum):
+            raise KeyboardInterrupt(f"signal {signum}")
 
     signal.signal(signal.SIGTERM, interrupted)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, interrupted)
     try:
         return main()
     except KeyboardInterrupt as e:

@@ -259,3 +259,20 @@ def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
     its = [h["iteration"] for h in saved["history"]]
     assert its and its == list(range(len(its)))     # the start and each iteration done
     assert len(saved["params"]) == len(saved["signature"]["param_names"])
+
+
+def test_interrupt_during_a_write_waits_for_it(tmp_path):
+    """A signal that arrives while a file is written is held until the file is whole and in
+    place, then raised; the temporary folder never stays."""
+    from mpi4py import MPI
+
+    from fem import io
+
+    target = tmp_path / "r.json"
+    with pytest.raises(KeyboardInterrupt):
+        with io._staged(target, MPI.COMM_SELF) as tmp:
+            (tmp / target.name).write_text("{}")
+            assert not io.interrupt_now(15)        # held: the write goes on
+    assert target.read_text() == "{}"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["r.json"]
+    assert io.interrupt_now(15)                     # no write in progress: interrupt now
