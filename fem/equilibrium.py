@@ -138,6 +138,9 @@ class Equilibrium:
         if self.B.ndim != 2 or self.B.shape[0] != n_local:
             raise InputError(f"blendshapes must be ({n_local}, Np), got {self.B.shape}")
         self.n_params = self.B.shape[1]
+        # owned vertices that carry a goal (checked after every Newton solve)
+        self._active = np.any(self.B.reshape(-1, 3, self.n_params)[:domain.n_owned] != 0,
+                              axis=(1, 2))
         v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
         F = ufl.Identity(3) + ufl.grad(self.u)
         ds = domain.ds()(tuple(active_tags), metadata={"quadrature_degree": quadrature_degree})
@@ -593,10 +596,8 @@ class Equilibrium:
     # ------------------------------------------------------------------ outputs
     def active_goal_error(self) -> float:
         """max over active vertices of |u - g|, mm (collective)."""
-        gap = (self.u.x.array - self.goal.x.array).reshape(-1, 3)
-        n = self.domain.n_owned
-        active = np.any(self.B.reshape(-1, 3, self.n_params)[:n] != 0, axis=(1, 2))
-        local = np.linalg.norm(gap[:n][active], axis=1).max(initial=0.0)
+        gap = (self.u.x.array - self.goal.x.array).reshape(-1, 3)[:self.domain.n_owned]
+        local = np.linalg.norm(gap[self._active], axis=1).max(initial=0.0)
         return self.domain.comm.allreduce(local, op=MPI.MAX)
 
     def destroy(self):

@@ -114,7 +114,8 @@ class Treatment:
             raise InputError(f"unknown parameter(s) {unknown}; known: {self.names}")
         p = np.zeros(len(self.params))
         for k, v in values.items():
-            p[self.names.index(k)] = _number_in(v, self.params[self.names.index(k)])
+            i = self.names.index(k)
+            p[i] = _number_in(v, self.params[i])
         if not np.all(np.isfinite(p)):
             raise InputError(f"parameters must be finite: {dict(zip(self.names, p))}")
         return p

@@ -36,6 +36,22 @@ def parse(ap, argv=None):
     return args, comm
 
 
+def scene_parser(doc: str, plan: bool = False, params: str | None = None):
+    """An argument parser with the scene options (`add_scene_args`); with ``params`` (what
+    the parameters are, for the help), also ``--params FILE`` and ``--p NAME=VALUE ...``,
+    read by `load_params`."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_args(ap, plan)
+    if params:
+        ap.add_argument("--params", help=f"JSON file {{name: value}}: {params}")
+        ap.add_argument("--p", nargs="*", default=[], metavar="NAME=VALUE",
+                        help=f"{params} (override --params)")
+    return ap
+
+
 def add_scene_args(ap, plan: bool = False):
     """Scene options; for planning, ``--params-used`` defaults to `PLAN_PARAMS`."""
     from inverse.treatment import PLAN_PARAMS

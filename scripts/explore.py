@@ -15,27 +15,22 @@ one; with ``--compare`` it also solves the true equilibrium and reports max/mean
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
-    add_scene_args,
     load_params,
     parse,
     run_main,
     scene_from_args,
+    scene_parser,
 )
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_args(ap)
-    ap.add_argument("--params", help="JSON {name: value}: the equilibrium p0 to explore at")
-    ap.add_argument("--p", nargs="*", default=[], metavar="NAME=VALUE", help="p0 entries")
+    ap = scene_parser(__doc__, params="the equilibrium p0 to explore at")
     ap.add_argument("--dp", nargs="*", default=[], metavar="NAME=VALUE",
                     help="a change of the treatment to predict")
     ap.add_argument("--scales", default="1", help="comma-separated multiples of dp")

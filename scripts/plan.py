@@ -12,12 +12,11 @@ vertical). The report has the keys listed in README.md.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from scripts._common import add_scene_args, parse, run_main, scene_from_args  # noqa: E402
+from scripts._common import parse, run_main, scene_from_args, scene_parser  # noqa: E402
 
 
 def plan_report(scene, result, targets, before, comm) -> dict:
@@ -74,9 +73,7 @@ def _load_checkpoint(path, signature: dict, comm) -> dict:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_args(ap, plan=True)
+    ap = scene_parser(__doc__, plan=True)
     ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm (default: the case's "
                     "clinical goal)")
     ap.add_argument("--landmarks", help="comma-separated subset of the targets to use")

@@ -9,28 +9,22 @@ PETSc options (e.g. ``-orthodiff_fwd_ksp_type cg``) pass through to the solver.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
-    add_scene_args,
     load_params,
     parse,
     peak_rss_mb,
     run_main,
     scene_from_args,
+    scene_parser,
 )
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_args(ap)
-    ap.add_argument("--params", help="JSON file {name: value} of treatment parameters")
-    ap.add_argument("--p", nargs="*", default=[], metavar="NAME=VALUE",
-                    help="treatment parameters (override --params)")
+    ap = scene_parser(__doc__, params="treatment parameters")
     ap.add_argument("--out", help="output folder for XDMF files")
     ap.add_argument("--report", help="JSON report path")
     ap.add_argument("--list-params", action="store_true",

@@ -23,13 +23,24 @@ def tiny_anatomy():
     return synthetic_head("class3", "tiny")
 
 
-@pytest.fixture(scope="session")
-def mandible_scene(tiny_anatomy):
-    """class3/tiny with the six mandible motions only."""
+def _mandible_only(anatomy, **kw):
     from inverse.scene import Scene
     from inverse.treatment import rigid_treatment
 
-    scene = Scene(tiny_anatomy, treatment=rigid_treatment(("mandible",)))
+    return Scene(anatomy, treatment=rigid_treatment(("mandible",)), **kw)
+
+
+@pytest.fixture(scope="session")
+def mandible_only():
+    """``mandible_only(anatomy, **kw)``: a new `Scene` with the six mandible motions only
+    (``kw`` go to Scene)."""
+    return _mandible_only
+
+
+@pytest.fixture(scope="session")
+def mandible_scene(tiny_anatomy):
+    """class3/tiny with the six mandible motions only."""
+    scene = _mandible_only(tiny_anatomy)
     scene.case, scene.resolution = "class3", "tiny"
     return scene
 

@@ -128,13 +128,10 @@ def test_penalty_coupling_matches_finite_differences(eq):
     eq.set_params(np.zeros(6))
 
 
-def test_presets_agree(tiny_anatomy):
-    from inverse.scene import Scene
-    from inverse.treatment import rigid_treatment
-
+def test_presets_agree(mandible_only, tiny_anatomy):
     res = {}
     for solver in ("direct", "gamg"):
-        s = Scene(tiny_anatomy, treatment=rigid_treatment(("mandible",)), solver=solver)
+        s = mandible_only(tiny_anatomy, solver=solver)
         s.solve({"mandible.advance_mm": 4.0})
         res[solver] = s.landmarks(["Pg", "Li"])
         s.eq.destroy()

@@ -14,13 +14,6 @@ from meshes.errors import SolverError
 pytestmark = pytest.mark.stress
 
 
-def _scene(anatomy, **kw):
-    from inverse.scene import Scene
-    from inverse.treatment import rigid_treatment
-
-    return Scene(anatomy, treatment=rigid_treatment(("mandible",)), **kw)
-
-
 def _assert_sound(scene, st, goal_mm=GOAL_TOLERANCE_MM):
     """A converged equilibrium: finite, no inverted cell, goals reached, bounded Newton."""
     assert np.all(np.isfinite(scene.eq.u_eq.array))
@@ -30,9 +23,9 @@ def _assert_sound(scene, st, goal_mm=GOAL_TOLERANCE_MM):
 
 
 @pytest.mark.parametrize("nu", [0.47, 0.49, 0.495, 0.499])
-def test_near_incompressible_tissue_converges(tiny_anatomy, nu):
+def test_near_incompressible_tissue_converges(mandible_only, tiny_anatomy, nu):
     """Up to ν = 0.499 the 5 mm advance converges; the iteration count is bounded."""
-    scene = _scene(tiny_anatomy, material=NeoHookean(nu=nu))
+    scene = mandible_only(tiny_anatomy, material=NeoHookean(nu=nu))
     st = scene.solve({"mandible.advance_mm": 5.0})
     # the goal error grows with the bulk modulus (λ/μ = 399 at 0.499): allow 0.1 mm there
     _assert_sound(scene, st, goal_mm=0.1)
@@ -40,12 +33,12 @@ def test_near_incompressible_tissue_converges(tiny_anatomy, nu):
     scene.eq.destroy()
 
 
-def test_penalty_stiffness_sweep(tiny_anatomy):
+def test_penalty_stiffness_sweep(mandible_only, tiny_anatomy):
     """k from 1e-2 to 1e6 x the default: converges in the same few steps, and the goal gap
     falls as 1/k (the penalty's equilibrium: k·gap balances a tissue force independent of k)."""
     gaps = {}
     for f in (1e-2, 1.0, 1e2, 1e4, 1e6):
-        scene = _scene(tiny_anatomy, penalty=DEFAULT_PENALTY * f)
+        scene = mandible_only(tiny_anatomy, penalty=DEFAULT_PENALTY * f)
         st = scene.solve({"mandible.advance_mm": 5.0})
         _assert_sound(scene, st, goal_mm=1.0)
         assert st.newton_iterations <= 10
@@ -86,10 +79,10 @@ def test_large_rotations_reach_equilibrium(mandible_scene, motion):
     mandible_scene.solve(np.zeros(6))
 
 
-def test_resisted_goal_is_reported(tiny_anatomy, caplog):
+def test_resisted_goal_is_reported(mandible_only, tiny_anatomy, caplog):
     """With a soft penalty (k / 100) the bone stops ~0.25 mm short of its goal: the
     equilibrium is returned and the shortfall is logged, never silent."""
-    scene = _scene(tiny_anatomy, penalty=DEFAULT_PENALTY / 100)
+    scene = mandible_only(tiny_anatomy, penalty=DEFAULT_PENALTY / 100)
     with caplog.at_level(logging.WARNING, logger="fem.equilibrium"):
         st = scene.solve({"mandible.advance_mm": 5.0})
     assert GOAL_TOLERANCE_MM < st.goal_error < GOAL_FAILURE_MM
@@ -164,7 +157,7 @@ def _with_slivers(anatomy, n=3, quality=5e-4):
     raise AssertionError("could not make slivers")
 
 
-def test_sliver_mesh_is_reported_and_solves(tiny_anatomy):
+def test_sliver_mesh_is_reported_and_solves(mandible_only, tiny_anatomy):
     """Nearly flat tetrahedra: a warning at the edge naming them; then the solve converges
     (or would say why)."""
     bad = _with_slivers(tiny_anatomy)
@@ -172,7 +165,7 @@ def test_sliver_mesh_is_reported_and_solves(tiny_anatomy):
         bad.validate()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        scene = _scene(bad)
+        scene = mandible_only(bad)
     assert tet_quality(bad.points, bad.cells).min() < SLIVER_QUALITY
     st = scene.solve({"mandible.advance_mm": 5.0})
     _assert_sound(scene, st)
@@ -180,7 +173,7 @@ def test_sliver_mesh_is_reported_and_solves(tiny_anatomy):
 
 
 @pytest.mark.serial
-def test_cholmod_shifts_on_failed_cholesky(tiny_anatomy):
+def test_cholmod_shifts_on_failed_cholesky(mandible_only, tiny_anatomy):
     """CHOLMOD reports no inertia: an indefinite K fails its Cholesky, which raises the
     shift (the paper's rule), and the result equals MUMPS's."""
     from mpi4py import MPI
@@ -189,7 +182,7 @@ def test_cholmod_shifts_on_failed_cholesky(tiny_anatomy):
         pytest.skip("PETSc's CHOLMOD is sequential")
     out = {}
     for solver in ("direct", "cholmod"):
-        scene = _scene(tiny_anatomy, solver=solver)
+        scene = mandible_only(tiny_anatomy, solver=solver)
         st = scene.solve({"mandible.advance_mm": 25.0})
         _assert_sound(scene, st)
         out[solver] = (len(st.shifts), scene.landmarks(["Pg", "Li"]))
