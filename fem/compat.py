@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dolfinx
 import dolfinx.fem.petsc as fem_petsc
+import numpy as np
 
 VERSION = tuple(int(v) for v in dolfinx.__version__.split(".")[:2])
 NEW_API = VERSION >= (0, 9)
@@ -66,3 +67,15 @@ def create_vector(L):
 
 create_matrix = fem_petsc.create_matrix
 assemble_vector = fem_petsc.assemble_vector
+
+
+def eval_expression(ufl_expr, points, mesh):
+    """A function of no arguments returning ``ufl_expr`` (scalar) at reference ``points``
+    (P, 3) of every local cell (ghosts included), shape (n_cells, P); compiled once."""
+    expr = dolfinx.fem.Expression(ufl_expr, points)
+    tdim = mesh.topology.dim
+    imap = mesh.topology.index_map(tdim)
+    cells = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
+    if NEW_API:
+        return lambda: expr.eval(mesh, cells).reshape(len(cells), -1)
+    return lambda: expr.eval(cells).reshape(len(cells), -1)

@@ -1,7 +1,11 @@
-"""Distribute an `Anatomy` over MPI ranks as a dolfinx mesh with facet tags and P1 maps.
+"""Distribute an `Anatomy` over MPI ranks as a dolfinx mesh with facet tags and nodal maps.
 
-`Domain` is what the solvers use: the mesh, facet tags, the P1 vector space, per-vertex rest
-coordinates, and `PointOperator`, the sparse map from nodal displacements to landmark points.
+`Domain` is what the solvers use: the mesh, facet tags, the Lagrange vector space (P1, or P2
+for the element-order study), the rest coordinates of its nodes, and `PointOperator`, the
+sparse map from nodal displacements to landmark points.
+
+A node (dof block) is named by a pair of original vertex indices: ``(i, i)`` for vertex i,
+``(i, j)``, i < j, for the midpoint of edge ij (P2).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from dolfinx import cpp as _cpp
 
 from fem import compat
 from meshes.anatomy import DIRICHLET_TAGS, Landmark
+from meshes.errors import InputError
 
 
 @dataclasses.dataclass
@@ -25,9 +30,11 @@ class Domain:
 
     Attributes:
         mesh: dolfinx mesh (mm); facet_tags: MeshTags on facets (meshes.anatomy tag values).
-        V: P1 vector space; X: (n_local_nodes, 3) rest coordinates of V's dof blocks (mm),
-        owned first, then ghosts. input_index: (n_local_nodes,) original vertex index of each
-        dof block. node_of_block: (n_local_nodes,) geometry node of each dof block.
+        V: Lagrange vector space of degree ``degree`` (1 or 2); X: (n_local_nodes, 3) rest
+        coordinates of V's dof blocks (mm), owned first, then ghosts. node_key:
+        (n_local_nodes, 2) the vertex pair naming each dof block (module docstring).
+        input_index: (n_local_nodes,) original vertex index of each dof block, -1 on edges.
+        node_of_block: (n_local_nodes,) geometry node of each dof block, -1 on edges.
         segments, pivots, landmarks, name, n_vertices, n_cells: as in `Anatomy`.
     """
 
@@ -35,7 +42,7 @@ class Domain:
     facet_tags: object
     V: object
     X: np.ndarray
-    input_index: np.ndarray
+    node_key: np.ndarray
     node_of_block: np.ndarray
     segments: dict
     pivots: dict
@@ -45,16 +52,31 @@ class Domain:
     n_cells: int
 
     @property
+    def degree(self) -> int:
+        return self.V.ufl_element().degree()
+
+    @property
+    def input_index(self) -> np.ndarray:
+        """(n_local_nodes,) original vertex index of each dof block, -1 on edge midpoints."""
+        i, j = self.node_key.T
+        return np.where(i == j, i, -1)
+
+    @property
     def comm(self) -> MPI.Comm:
         return self.mesh.comm
 
     @property
+    def n_dofs(self) -> int:
+        """Global number of displacement dofs."""
+        return self.V.dofmap.index_map.size_global * self.V.dofmap.index_map_bs
+
+    @property
     def n_owned(self) -> int:
-        """Number of dof blocks (vertices) owned by this rank."""
+        """Number of dof blocks (nodes) owned by this rank."""
         return self.V.dofmap.index_map.size_local
 
     def facet_blocks(self, tags) -> np.ndarray:
-        """Local dof blocks (vertices) on facets with any of the given tags."""
+        """Local dof blocks (nodes) on facets with any of the given tags."""
         facets = self.facet_tags.indices[np.isin(self.facet_tags.values, list(tags))]
         return dolfinx.fem.locate_dofs_topological(self.V, self.mesh.topology.dim - 1, facets)
 
@@ -74,6 +96,7 @@ class Domain:
         from meshes.anatomy import SKIN
 
         mine = self.input_index[self.facet_blocks([SKIN])]
+        mine = mine[mine >= 0]   # vertices, not edge midpoints
         return np.unique(np.concatenate(self.comm.allgather(mine)))
 
     def skin_triangles(self, vertices: np.ndarray) -> np.ndarray:
@@ -92,6 +115,18 @@ class Domain:
         return PointOperator.build(self, [Landmark((v, v, v), (1.0, 0.0, 0.0))
                                           for v in vertices])
 
+    def owned_blocks(self, pairs: np.ndarray) -> np.ndarray:
+        """Owned dof block (K,) of each node named by a vertex pair (K, 2) (module
+        docstring), or -1 where this rank does not own it."""
+        code = np.array([self.n_vertices, 1], dtype=np.int64)
+        key = self.node_key[:self.n_owned] @ code   # node_key rows are sorted
+        want = np.sort(np.asarray(pairs, dtype=np.int64), axis=1) @ code
+        if not len(key):
+            return np.full(len(want), -1)
+        order = np.argsort(key)
+        j = order[np.minimum(np.searchsorted(key, want, sorter=order), len(key) - 1)]
+        return np.where(key[j] == want, j, -1)
+
     def ds(self):
         return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags)
 
@@ -100,8 +135,9 @@ class Domain:
 class PointOperator:
     """Sparse map L from nodal displacement u to points ``L(X + u)``, (Nt, 3) mm.
 
-    Each point is a weighted sum of three vertices. Rows are held on the rank that owns
-    the vertex; results are summed over ranks.
+    Each point is a weighted sum of the nodes of its skin triangle (the Lagrange basis of
+    the domain's degree at its barycentric coordinates). Terms are held on the rank that owns
+    the node; results are summed over ranks.
     """
 
     comm: MPI.Comm
@@ -113,15 +149,14 @@ class PointOperator:
 
     @classmethod
     def build(cls, domain: Domain, landmarks: list[Landmark]) -> "PointOperator":
-        owned = domain.input_index[:domain.n_owned]
-        order = np.argsort(owned)
-        facet = np.array([lm.facet for lm in landmarks], dtype=np.int64).reshape(-1)
-        weight = np.array([lm.weights for lm in landmarks], dtype=float).reshape(-1)
-        point = np.repeat(np.arange(len(landmarks), dtype=np.int32), 3)
-        j = np.minimum(np.searchsorted(owned, facet, sorter=order), max(len(owned) - 1, 0))
-        mine = (owned[order[j]] == facet) if len(owned) else np.zeros(len(facet), bool)
-        block = order[j[mine]].astype(np.int32)
-        return cls(domain.comm, len(landmarks), point[mine], block, weight[mine],
+        facet = np.array([lm.facet for lm in landmarks], dtype=np.int64).reshape(-1, 3)
+        lam = np.array([lm.weights for lm in landmarks], dtype=float).reshape(-1, 3)
+        pairs, weight = _lagrange_terms(facet, lam, domain.degree)
+        point = np.repeat(np.arange(len(landmarks), dtype=np.int32), weight.shape[1])
+        block = domain.owned_blocks(pairs.reshape(-1, 2))
+        mine = (block >= 0) & (weight.ravel() != 0)
+        block = block[mine].astype(np.int32)
+        return cls(domain.comm, len(landmarks), point[mine], block, weight.ravel()[mine],
                    domain.X[block])
 
     def apply(self, u_array: np.ndarray, offset: bool = True) -> np.ndarray:
@@ -138,13 +173,35 @@ class PointOperator:
         np.add.at(o, self.block, self.weight[:, None] * g[self.point])
 
 
-def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0) -> Domain:
+#: Edges of the reference tetrahedron (basix order): the P2 edge dofs follow the vertices.
+_EDGES = [(2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1)]
+
+
+def _lagrange_terms(facet: np.ndarray, lam: np.ndarray, degree: int):
+    """Nodes (Nt, m, 2) as vertex pairs and weights (Nt, m) of points with barycentric
+    coordinates ``lam`` (Nt, 3) on triangles ``facet`` (Nt, 3): the Lagrange basis."""
+    if degree == 1:
+        return np.stack([facet, facet], axis=-1), lam
+    ab = [(0, 1), (0, 2), (1, 2)]
+    pairs = np.concatenate([np.stack([facet, facet], -1),
+                            np.stack([facet[:, [a for a, _ in ab]],
+                                      facet[:, [b for _, b in ab]]], -1)], axis=1)
+    weights = np.concatenate([lam * (2 * lam - 1),
+                              np.stack([4 * lam[:, a] * lam[:, b] for a, b in ab], 1)], 1)
+    return pairs, weights
+
+
+def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
+                  degree: int = 1) -> Domain:
     """Distribute an anatomy over ``comm``.
 
     Args:
         source: an `Anatomy`, or a callable returning one, evaluated and validated on ``root``
             only (other ranks may pass None). An error there is raised on every rank.
+        degree: of the Lagrange displacement, 1 or 2.
     """
+    if degree not in (1, 2):
+        raise InputError(f"element degree must be 1 or 2, got {degree!r}")
     meta = None
     cells, x = np.empty((0, 4), dtype=np.int64), np.empty((0, 3))
     facets, values = np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int32)
@@ -171,20 +228,26 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0) -> Dom
                                                 values.astype(np.int32))
     adj = _cpp.graph.AdjacencyList_int32(ents)
     ft = dolfinx.mesh.meshtags_from_entities(mesh, tdim - 1, adj, vals.astype(np.int32))
-    V = compat.vector_space(mesh)
-    # P1: V's dofs and geometry nodes follow the same cell-local vertex order
+    V = compat.vector_space(mesh, degree)
+    # the first 4 dofs of a cell are its vertices, in the geometry's order; P2 edges follow
     gdofs = mesh.geometry.dofmap.array.reshape(-1, 4)
-    vdofs = V.dofmap.list.array.reshape(-1, 4)
+    vdofs = V.dofmap.list.array.reshape(len(gdofs), -1)
+    ends = np.array([(k, k) for k in range(4)] + _EDGES[:vdofs.shape[1] - 4])
     n_blocks = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
-    node_of_block = np.empty(n_blocks, dtype=np.int64)
-    node_of_block[vdofs.ravel()] = gdofs.ravel()
-    X = mesh.geometry.x[node_of_block, :3].copy()
-    input_index = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[node_of_block]
-    return Domain(mesh, ft, V, X, input_index, node_of_block, **meta)
+    node_of_block = np.full(n_blocks, -1, dtype=np.int64)
+    node_of_block[vdofs[:, :4].ravel()] = gdofs.ravel()
+    vertex = np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[gdofs]
+    node_key = np.empty((n_blocks, 2), dtype=np.int64)
+    node_key[vdofs.ravel()] = np.sort(vertex[:, ends], axis=2).reshape(-1, 2)
+    X = np.empty((n_blocks, 3))
+    X[vdofs.ravel()] = mesh.geometry.x[:, :3][gdofs][:, ends].mean(axis=2).reshape(-1, 3)
+    return Domain(mesh, ft, V, X, node_key, node_of_block, **meta)
 
 
 def node_values(domain: Domain, block_values: np.ndarray) -> np.ndarray:
-    """Per-geometry-node array (n_nodes, 3) from per-dof-block values (n_blocks, 3)."""
+    """Per-geometry-node array (n_nodes, 3) from per-dof-block values (n_blocks, 3) (the
+    vertex values; P2 edge midpoints are dropped)."""
     out = np.zeros((len(domain.mesh.geometry.x), 3))
-    out[domain.node_of_block] = block_values.reshape(-1, 3)
+    vertex = domain.node_of_block >= 0
+    out[domain.node_of_block[vertex]] = block_values.reshape(-1, 3)[vertex]
     return out

@@ -118,7 +118,8 @@ class Equilibrium:
                  prefix: str = "orthodiff_fwd_", xtol: float = 0.1, frtol: float = 1e-2,
                  atol: float = 1e-10,
                  max_it: int = 25, shift_max: float = 1e4, shift_retry: float = 1.0,
-                 lag_its: int = 0, quadrature_degree: int = 2):
+                 lag_its: int = 0, quadrature_degree: int = 2,
+                 volume_quadrature_degree: int | None = None):
         if not prefix:
             raise ValueError("an options prefix is required")
         if solver not in PRESETS:
@@ -148,7 +149,10 @@ class Equilibrium:
         # material and penalty are constants, not numbers: the forms compile once for all
         mu, lmbda, k = (dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(v))
                         for v in (material.mu, material.lmbda, penalty))
-        energy = (material.energy_density(F, mu, lmbda) * ufl.dx
+        qd = 2 * (domain.degree - 1) if volume_quadrature_degree is None else \
+            volume_quadrature_degree
+        dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
+        energy = (material.energy_density(F, mu, lmbda) * dx
                   + 0.5 * k * ufl.inner(gap, gap) * ds)
         residual = ufl.derivative(energy, self.u, v)
         jacobian = ufl.derivative(residual, self.u, du)
@@ -179,8 +183,11 @@ class Equilibrium:
         self._K_ready = False
         self._sens = None                    # cached dx/dp columns at the equilibrium
         self.tangent_ksp = self._make_tangent_ksp(prefix)
+        # det F at the vertices of each cell (constant on P1 cells, so its centroid)
+        pts = np.array([[0.25] * 3] if domain.degree == 1 else
+                       [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.25] * 3], dtype=float)
+        self._det_F = compat.eval_expression(ufl.det(F), pts, domain.mesh)
         self.setup_time = time.perf_counter() - t0
-        self._cells = self._cell_blocks()
 
     # ------------------------------------------------------------------ setup helpers
     def _coupling_times_blendshapes(self) -> list:
@@ -263,23 +270,16 @@ class Equilibrium:
         ksp.setFromOptions()
         return ksp
 
-    def _cell_blocks(self):
-        """(n_cells_local, 4) dof blocks and rest edge matrices' inverse determinants."""
-        blocks = self.domain.V.dofmap.list.array.reshape(-1, 4)
-        e = self.domain.X[blocks[:, 1:]] - self.domain.X[blocks[:, :1]]
-        return blocks, np.linalg.det(e)
-
     # ------------------------------------------------------------------ SNES callbacks
     def _set_state(self, x):
         x.copy(self._uvec)
         self._uvec.ghostUpdate(PETSc.InsertMode.INSERT, PETSc.ScatterMode.FORWARD)
 
     def min_det_F(self) -> float:
-        """Smallest det F over all cells of the current displacement (collective)."""
-        blocks, det0 = self._cells
-        x = self.domain.X + self.u.x.array.reshape(-1, 3)
-        det = np.linalg.det(x[blocks[:, 1:]] - x[blocks[:, :1]]) / det0
-        local = det.min() if len(det) else np.inf
+        """Smallest det F of the current displacement over all cells (collective): P1 F is
+        constant per cell; for P2, det F at the cell's vertices and centroid."""
+        det = self._det_F()
+        local = det.min() if det.size else np.inf
         return self.domain.comm.allreduce(local, op=MPI.MIN)
 
     def _objective(self, snes, x):

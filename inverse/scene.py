@@ -11,8 +11,10 @@ from mpi4py import MPI
 
 import time
 
+import dolfinx
 import numpy as np
 
+from fem import compat
 from fem.domain import create_domain, node_values
 from fem.equilibrium import DEFAULT_PENALTY, Equilibrium, SolveStats
 from fem.io import write_xdmf
@@ -29,6 +31,7 @@ class Scene:
         anatomy: an `Anatomy` or a callable returning one (evaluated on rank 0 only).
         treatment: parameters (default: six rigid motions per segment of the anatomy).
         params_used: optional subset of parameter names to keep, in order.
+        degree: Lagrange degree of the displacement, 1 (default) or 2.
         material, penalty (kPa/mm), solver (preset name), options (PETSc options), and
             ``newton`` (dict: xtol, frtol, max_it, ...): passed to `fem.equilibrium.Equilibrium`.
     """
@@ -40,9 +43,9 @@ class Scene:
                  params_used=None, material: NeoHookean = NeoHookean(),
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
                  options: dict | None = None, newton: dict | None = None,
-                 comm: MPI.Comm = MPI.COMM_WORLD):
+                 degree: int = 1, comm: MPI.Comm = MPI.COMM_WORLD):
         t0 = time.perf_counter()
-        self.domain = create_domain(anatomy, comm)
+        self.domain = create_domain(anatomy, comm, degree=degree)
         self.timings = {"mesh": time.perf_counter() - t0}
         treatment = treatment or rigid_treatment(tuple(self.domain.segments))
         self.treatment = treatment.subset(params_used) if params_used else treatment
@@ -111,7 +114,11 @@ class Scene:
 
         out = Path(out_dir)
         mesh = self.domain.mesh
-        write_xdmf(out / "displacement.xdmf", mesh, functions=[self.eq.u])
+        u = self.eq.u
+        if self.domain.degree > 1:   # XDMF holds vertex values: write u's P1 interpolant
+            u = dolfinx.fem.Function(compat.vector_space(mesh), name=u.name)
+            u.interpolate(self.eq.u)
+        write_xdmf(out / "displacement.xdmf", mesh, functions=[u])
         self.domain.facet_tags.name = "facet_tags"
         write_xdmf(out / "deformed.xdmf", mesh, meshtags=[self.domain.facet_tags],
                    node_displacement=node_values(self.domain, self.eq.u.x.array))

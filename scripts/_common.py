@@ -66,12 +66,14 @@ def add_scene_args(ap, plan: bool = False):
     ap.add_argument("--solver", default="direct", help="linear solver preset: direct, cholmod, "
                     "gamg")
     ap.add_argument("--penalty", type=float, default=None, help="active penalty k, kPa/mm")
+    ap.add_argument("--degree", type=int, default=1, choices=(1, 2),
+                    help="Lagrange degree of the displacement (P2: ~7x the dofs, see BENCHMARKS)")
 
 
 def scene_from_args(args, comm):
     from inverse.scene import Scene
 
-    kw = {"solver": args.solver, "comm": comm}
+    kw = {"solver": args.solver, "comm": comm, "degree": args.degree}
     if args.params_used:
         kw["params_used"] = [s.strip() for s in args.params_used.split(",") if s.strip()]
     if args.penalty is not None:

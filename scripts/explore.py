@@ -94,7 +94,8 @@ def main(argv=None):
             print("  ".join(f"{k} {np.round(v, 3).tolist()}" for k, v in row.items()
                             if k != "dp"))
     report = {"case": scene.case or scene.domain.name, "resolution": scene.resolution,
-              "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
+              "degree": scene.domain.degree, "n_vertices": scene.domain.n_vertices,
+              "n_ranks": comm.size,
               "n_skin_vertices": len(pred.vertices), "param_names": scene.param_names,
               "p0": p0, "predictions": rows,
               "timings_s": {"forward": t_forward, "sensitivity": t_sens,

@@ -33,6 +33,7 @@ def plan_report(scene, result, targets, before, comm) -> dict:
     mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
     return {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,
+        "degree": scene.domain.degree,
         "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
         "param_names": scene.param_names, "params_initial": result.params_initial,
         "params_optimal": result.params, "landmarks": table,
@@ -109,7 +110,7 @@ def main(argv=None):
 
     ckpt = args.checkpoint or (args.report + ".checkpoint.json" if args.report else None)
     state = {"signature": {"case": scene.case or scene.domain.name,
-                           "resolution": scene.resolution,
+                           "resolution": scene.resolution, "degree": scene.domain.degree,
                            "n_vertices": scene.domain.n_vertices,
                            "param_names": scene.param_names, "targets": targets,
                            "tikhonov": args.tikhonov},

@@ -54,7 +54,9 @@ def main(argv=None):
     timings["total"] = time.perf_counter() - t0
     report = {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,
+        "degree": scene.domain.degree,
         "n_vertices": scene.domain.n_vertices, "n_cells": scene.domain.n_cells,
+        "n_dofs": scene.domain.n_dofs,
         "n_ranks": comm.size, "param_names": scene.param_names, "params": p,
         "landmarks": moved, "landmarks_rest": rest, "active_goal_error_max_mm": err,
         "newton_iterations": stats.newton_iterations,

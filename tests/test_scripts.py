@@ -31,11 +31,13 @@ def _mpirun(n):
 
 
 @pytest.mark.mpi
-def test_simulate_same_on_1_and_2_ranks(tmp_path):
+@pytest.mark.parametrize("degree", ["1", "2"])
+def test_simulate_same_on_1_and_2_ranks(tmp_path, degree):
     reports = {}
     for n in (1, 2):
         out = tmp_path / f"n{n}"
-        r = _run(_mpirun(n) + SIM + ["--p", "mandible.advance_mm=5", "mandible.yaw_deg=2",
+        r = _run(_mpirun(n) + SIM + ["--degree", degree,
+                                     "--p", "mandible.advance_mm=5", "mandible.yaw_deg=2",
                                      "--out", str(out), "--report", str(out / "r.json")])
         assert r.returncode == 0, r.stderr[-2000:]
         reports[n] = json.loads((out / "r.json").read_text())
@@ -45,6 +47,7 @@ def test_simulate_same_on_1_and_2_ranks(tmp_path):
     assert set(reports[1]["timings_s"]) >= {"mesh", "compile", "assemble", "linear_solve",
                                             "total"}
     assert reports[2]["n_ranks"] == 2 and reports[1]["active_goal_error_max_mm"] < 0.05
+    assert reports[1]["degree"] == int(degree)
     for name, x1 in reports[1]["landmarks"].items():
         x2 = reports[2]["landmarks"][name]
         np.testing.assert_allclose(x2, x1, rtol=1e-8, atol=1e-8 * 100)
