@@ -182,12 +182,10 @@ def _lagrange_terms(facet: np.ndarray, lam: np.ndarray, degree: int):
     coordinates ``lam`` (Nt, 3) on triangles ``facet`` (Nt, 3): the Lagrange basis."""
     if degree == 1:
         return np.stack([facet, facet], axis=-1), lam
-    ab = [(0, 1), (0, 2), (1, 2)]
+    a, b = [0, 0, 1], [1, 2, 2]   # the triangle's edges
     pairs = np.concatenate([np.stack([facet, facet], -1),
-                            np.stack([facet[:, [a for a, _ in ab]],
-                                      facet[:, [b for _, b in ab]]], -1)], axis=1)
-    weights = np.concatenate([lam * (2 * lam - 1),
-                              np.stack([4 * lam[:, a] * lam[:, b] for a, b in ab], 1)], 1)
+                            np.stack([facet[:, a], facet[:, b]], -1)], axis=1)
+    weights = np.concatenate([lam * (2 * lam - 1), 4 * lam[:, a] * lam[:, b]], axis=1)
     return pairs, weights
 
 

@@ -57,6 +57,27 @@ def tight_scene(mandible_scene):
     mandible_scene.solve(np.zeros(6))
 
 
+def _central_differences(scene, obj, p, h: float = 1e-3) -> np.ndarray:
+    """d(points)/dp (3 Nt, Np) of ``obj`` at ``p`` by central differences (2 Np solves);
+    the scene is left at ``p``."""
+    p = np.asarray(p, dtype=float)
+    cols = []
+    for e in np.eye(len(p)) * h:
+        scene.solve(p + e)
+        xp = obj.points().ravel()
+        scene.solve(p - e)
+        cols.append((xp - obj.points().ravel()) / (2 * h))
+    scene.solve(p)
+    return np.stack(cols, axis=1)
+
+
+@pytest.fixture(scope="session")
+def central_differences():
+    """``central_differences(scene, obj, p, h=1e-3)``: d(points)/dp (3 Nt, Np) of an
+    objective's points by central differences; the scene is left at p."""
+    return _central_differences
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -47,23 +47,14 @@ def test_taylor_adjoint_gradient(scene, rng):
         scene.solve(P0)
 
 
-def test_landmark_sensitivity_matches_finite_differences(scene):
+def test_landmark_sensitivity_matches_finite_differences(scene, central_differences):
     obj = _objective(scene)
     scene.solve(P0)
     S_direct, m1 = obj.jacobian("direct")
     S_adjoint, m2 = obj.jacobian("adjoint")
     assert (m1, m2) == ("direct", "adjoint")
     assert np.abs(S_direct - S_adjoint).max() < 1e-8 * np.abs(S_direct).max()
-    h = 1e-3
-    fd = np.empty_like(S_direct)
-    for i in range(6):
-        e = np.zeros(6)
-        e[i] = h
-        scene.solve(P0 + e)
-        xp = obj.points().ravel()
-        scene.solve(P0 - e)
-        fd[:, i] = (xp - obj.points().ravel()) / (2 * h)
-    scene.solve(P0)
+    fd = central_differences(scene, obj, P0)
     err = np.abs(fd - S_direct).max() / np.abs(S_direct).max()
     assert err < 1e-5, err
     # the auto mode picks the cheaper side: 6 parameters < 12 rows -> direct
