@@ -4,6 +4,10 @@ The energy is UFL; residual f = dE/du, Jacobian K = df/du and the goal coupling 
 ``ufl.derivative``. The goal displacement of the active bone is ``g = B p`` for a blendshape
 matrix B (n_dofs, Np), so ``df/dp = (df/dg) B`` is assembled once (the penalty is quadratic).
 
+The default method is quasi-Newton (SNESQN, L-BFGS) whose initial inverse Hessian is the kept
+factorisation of K: one factorisation serves many solves. Newton (SNES newtonls, a
+factorisation per step) takes over when it fails.
+
 Robustness: the line search minimises the energy, which is +inf where any tetrahedron has
 det F <= 0, so inverting trial steps are rejected and no NaN is ever formed; when a Newton
 solve fails (indefinite K, KSP or line-search failure) a diagonal shift is added and raised;
@@ -45,6 +49,23 @@ PRESETS = {
              "mg_levels_pc_type": "jacobi", "mg_levels_ksp_chebyshev_esteig_steps": 20,
              "ksp_norm_type": "unpreconditioned"},
 }
+#: Nonlinear methods (SNES options). ``qn``: L-BFGS whose initial inverse Hessian is the kept
+#: factorisation of K (scale type "jacobian"), refactorised only when a solve converges slowly;
+#: ``newton``: Newton with a factorisation every step (quadratic convergence).
+METHODS = {
+    "qn": {"snes_type": "qn", "snes_qn_type": "lbfgs", "snes_qn_scale_type": "jacobian",
+           "snes_qn_m": 10, "snes_qn_restart_type": "none"},
+    "newton": {"snes_type": "newtonls"},
+}
+#: Per-method defaults of xtol (mm), max_it and lag_its (see `Equilibrium`).
+METHOD_DEFAULTS = {"qn": dict(xtol=0.01, max_it=40, lag_its=30),
+                   "newton": dict(xtol=0.1, max_it=25, lag_its=0)}
+#: Below this xtol (mm) quasi-Newton's linear rate (~10 iterations a decade) loses to Newton's
+#: quadratic one: such solves use Newton.
+QN_MIN_XTOL = 1e-4
+#: A tangent (adjoint, sensitivity) solve that needs more CG iterations than this with the
+#: kept factorisation has the next one refactorise at the equilibrium.
+TANGENT_LAG_ITS = 5
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
 DEFAULT_PENALTY = 5.0e4
 #: An equilibrium whose active vertices stay farther than this from their goals (mm) is
@@ -95,40 +116,51 @@ class Equilibrium:
         penalty: k, kPa/mm, weight of the active-vertex penalty per unit area.
         solver: a key of `PRESETS`; any PETSc option can be overridden with
             ``-<prefix>ksp_type ...`` on the command line or in ``options``.
-        xtol: stop when a full (unshifted) Newton step is below xtol (inf-norm, mm) and the
-            residual is below ``frtol`` x the load of the step; or when the residual norm is
-            below ``atol`` (mN). The defaults (0.1 mm, 1e-2) keep landmarks within 1e-3 mm
-            of a 1e-10 mm solve (BENCHMARKS.md, tolerance curve: ~1e-7 mm, Newton converges
-            quadratically), and a treatment smaller than 0.1 mm, which stops after its
-            first, linear step, errs ~3e-4 mm.
-        max_it: Newton iterations per SNES solve.
+        method: a key of `METHODS`: ``qn`` (default; one factorisation serves many solves)
+            or ``newton``.
+        xtol: stop when a full step is below xtol (inf-norm, mm) and the residual is below
+            ``frtol`` x the load of the step; or when the residual norm is below ``atol``
+            (mN). Newton: a full, unshifted step; its default 0.1 mm keeps landmarks within
+            1e-3 mm of a 1e-10 mm solve (BENCHMARKS.md, tolerance curve: ~1e-7 mm, Newton
+            converges quadratically), and a treatment smaller than 0.1 mm, which stops
+            after its first, linear step, errs ~3e-4 mm. Quasi-Newton converges linearly,
+            so both its last step and its search direction must be below xtol (default
+            0.01 mm, ~1e-4 mm at the landmarks).
+        max_it: iterations per SNES solve (default per method, `METHOD_DEFAULTS`).
         shift_max: largest diagonal shift of the inertia check, in units of the median
             diagonal of K.
         shift_retry: after a failed SNES solve, Newton is resumed with shifts 0.01, 1, ...
             up to this (same units); then the step in p is bisected.
-        lag_its: preconditioner lagging: K is refactorised only when the previous Newton
-            step's CG needed more than this many iterations with the kept factorisation
-            (or after a failure); 0 (default) refactorises every step: without the inertia
-            check, lagged CG on an indefinite K made paper-size Newton take 17 steps, not 7.
+        lag_its: reuse of the kept factorisation. Newton: K is refactorised only when the
+            previous step's CG needed more than this many iterations with the kept factor
+            (or after a failure); 0 (Newton's default) refactorises every step: without the
+            inertia check, lagged CG on an indefinite K made paper-size Newton take 17 steps,
+            not 7. Quasi-Newton: a solve starts from the kept factorisation unless it was
+            shifted or the previous solve needed more than lag_its iterations (default 30).
     """
 
     def __init__(self, domain: Domain, blendshapes: np.ndarray, active_tags,
                  material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
                  solver: str = "direct", options: dict | None = None,
-                 prefix: str = "orthodiff_fwd_", xtol: float = 0.1, frtol: float = 1e-2,
-                 atol: float = 1e-10,
-                 max_it: int = 25, shift_max: float = 1e4, shift_retry: float = 1.0,
-                 lag_its: int = 0, quadrature_degree: int = 2,
+                 prefix: str = "orthodiff_fwd_", method: str = "qn",
+                 xtol: float | None = None, frtol: float = 1e-2, atol: float = 1e-10,
+                 max_it: int | None = None, shift_max: float = 1e4, shift_retry: float = 1.0,
+                 lag_its: int | None = None, quadrature_degree: int = 2,
                  volume_quadrature_degree: int | None = None):
         if not prefix:
             raise ValueError("an options prefix is required")
         if solver not in PRESETS:
             raise InputError(f"unknown solver preset {solver!r}; choose one of {list(PRESETS)}")
+        if method not in METHODS:
+            raise InputError(f"unknown method {method!r}; choose one of {list(METHODS)}")
         if not (np.isfinite(penalty) and penalty > 0):
             raise InputError(f"penalty k = {penalty} kPa/mm must be positive and finite")
         t0 = time.perf_counter()
         self.domain, self.material, self.penalty = domain, material, penalty
-        self.xtol, self.frtol, self.atol, self.max_it = xtol, frtol, atol, max_it
+        given = dict(xtol=xtol, max_it=max_it, lag_its=lag_its)
+        for key, default in METHOD_DEFAULTS[method].items():
+            setattr(self, key, default if given[key] is None else given[key])
+        self.method, self.frtol, self.atol = method, frtol, atol
         V = domain.V
         self.u = dolfinx.fem.Function(V, name="displacement")
         self._uvec = compat.petsc_vec(self.u)
@@ -175,9 +207,14 @@ class Equilibrium:
         self._step_shift = 0.0   # the shift of the last Newton step's matrix
         self.ksp = self._make_snes(prefix, solver, options or {})
         self._f_ref = None
-        self.lag_its, self._refactor = lag_its, False
+        self._refactor = False
+        self._last_objective = None          # [x, energy] of the last objective call
+        self._direction = np.inf             # inf-norm of the last search direction, mm
+        self._last_its = 0                   # iterations of the last SNES solve
         self._pc_ready = False               # the SNES PC holds a factorisation of some K
+        self._stale_pc = False               # ... which slowed the last tangent solve
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
+        self.solved_xtol = 0.0              # the xtol it was solved to, mm (rest: exact)
         self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
         self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
         self._K_ready = False
@@ -221,24 +258,16 @@ class Equilibrium:
         self.A.setNearNullSpace(ns)
 
     def _make_snes(self, prefix: str, solver: str, options: dict):
-        """SNES newtonls + energy line search; preset options under ``prefix`` (the command
-        line wins), applied with setFromOptions and then removed from the global database."""
-        snes = PETSc.SNES().create(self.domain.comm)
-        snes.setOptionsPrefix(prefix)
-        opts = PETSc.Options()
-        settings = {"snes_type": "newtonls", "snes_linesearch_type": "bt",
-                    "snes_linesearch_max_it": 40, "snes_max_linear_solve_fail": 1,
-                    **PRESETS[solver], **options}
-        mine = [k for k in settings if not opts.hasName(prefix + k)]
-        for k in mine:
-            opts[prefix + k] = settings[k]
-        snes.setFunction(self._residual, self.b)
-        snes.setJacobian(self._jacobian, self.A)
-        snes.setObjective(self._objective)
-        snes.setConvergenceTest(self._converged)
-        snes.setTolerances(max_it=self.max_it)
-        snes.setFromOptions()
-        ksp = snes.getKSP()
+        """Newton's SNES, which owns the KSP (factorisation) that every solve shares; preset
+        options under ``prefix`` (the command line wins)."""
+        self._prefix = prefix
+        self._search = {"snes_linesearch_type": "bt", "snes_linesearch_max_it": 40,
+                        "snes_max_linear_solve_fail": 1}
+        settings = {**METHODS["newton"], **self._search, **PRESETS[solver], **options}
+        self._newton_snes = self._build_snes(settings, METHOD_DEFAULTS["newton"]["max_it"]
+                                             if self.method != "newton" else self.max_it)
+        self._qn_snes = None
+        ksp = self._newton_snes.getKSP()
         ksp.setOperators(self.A)
         pc = ksp.getPC()
         self._check_inertia = pc.getType() == "cholesky" and \
@@ -247,13 +276,50 @@ class Equilibrium:
             # MUMPS reads its options at factorisation time, after they are removed: set them
             pc.setFactorSetUpSolverType()
             factor = pc.getFactorMatrix()
+            opts = PETSc.Options()
             for k, v in settings.items():
                 if k.startswith("mat_mumps_icntl_"):
-                    factor.setMumpsIcntl(int(k.rsplit("_", 1)[1]), int(opts.getInt(prefix + k)))
-        for k in mine:
-            opts.delValue(prefix + k)
-        self.snes, self.solver_name = snes, solver
+                    factor.setMumpsIcntl(int(k.rsplit("_", 1)[1]),
+                                         opts.getInt(prefix + k, int(v)))
+        self.solver_name = solver
         return ksp
+
+    def _build_snes(self, settings: dict, max_it: int, ksp=None):
+        """A SNES with our callbacks and energy line search, configured from ``settings``
+        (PETSc options under the prefix; the command line wins), which are removed from the
+        global database afterwards. ``ksp``: share this KSP and its factorisation, as set
+        up (its options are not read again)."""
+        opts = PETSc.Options()
+        snes = PETSc.SNES().create(self.domain.comm)
+        snes.setOptionsPrefix(self._prefix)
+        mine = [k for k in settings if not opts.hasName(self._prefix + k)]
+        for k in mine:
+            opts[self._prefix + k] = settings[k]
+        # late-bound callbacks: a test may replace a method on the instance
+        snes.setFunction(lambda s, x, b: self._residual(s, x, b), self.b)
+        snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
+        snes.setObjective(lambda s, x: self._objective(s, x))
+        snes.setLineSearchPreCheck(self._precheck)
+        snes.setConvergenceTest(self._converged)
+        snes.setTolerances(max_it=max_it)
+        snes.setFromOptions()
+        if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
+            snes.setKSP(ksp)
+        for k in mine:
+            opts.delValue(self._prefix + k)
+        return snes
+
+    def _method_snes(self):
+        """The SNES for the next solve: Newton when asked for, or when xtol is below
+        `QN_MIN_XTOL`. PETSc 3.18's SNESQN keeps its L-BFGS pairs from one solve to the
+        next (pairs across different goals: wrong curvature), so quasi-Newton gets a fresh
+        one on the shared KSP each time (a few ms)."""
+        if self.method == "newton" or self.xtol < QN_MIN_XTOL:
+            return self._newton_snes
+        self._drop_qn_snes()
+        self._qn_snes = self._build_snes({**METHODS[self.method], **self._search},
+                                         self.max_it, self.ksp)
+        return self._qn_snes
 
     def _make_tangent_ksp(self, prefix: str):
         """CG on K at the equilibrium, preconditioned by whatever the last Newton step built
@@ -270,6 +336,14 @@ class Equilibrium:
         ksp.setFromOptions()
         return ksp
 
+    def _drop_qn_snes(self):
+        """Destroy the last quasi-Newton SNES; first hand it a KSP of its own: destroying a
+        SNES resets its KSP, which would throw away the shared factorisation."""
+        if self._qn_snes is not None:
+            self._qn_snes.setKSP(PETSc.KSP().create(self.domain.comm))
+            self._qn_snes.destroy()
+            self._qn_snes = None
+
     # ------------------------------------------------------------------ SNES callbacks
     def _set_state(self, x):
         x.copy(self._uvec)
@@ -283,17 +357,31 @@ class Equilibrium:
         return self.domain.comm.allreduce(local, op=MPI.MIN)
 
     def _objective(self, snes, x):
+        """Energy at x, mJ; +inf where any cell is inverted (ln det F is NaN at a P1 cell's
+        single quadrature point; P2 is also checked at the vertices). The line search asks
+        again for the point it accepted last: that value is remembered."""
+        last = self._last_objective
+        if last is not None and last[0].equal(x):
+            return last[1]
         t = time.perf_counter()
         self._set_state(x)
-        if not self.min_det_F() > 0:   # inverted or NaN state: reject
+        val = self.domain.comm.allreduce(
+            dolfinx.fem.assemble_scalar(self.forms["energy"]), op=MPI.SUM)
+        if not np.isfinite(val) or (self.domain.degree > 1 and not self.min_det_F() > 0):
             val = np.inf
+        if last is None:
+            last = [x.copy(), val]
         else:
-            val = self.domain.comm.allreduce(
-                dolfinx.fem.assemble_scalar(self.forms["energy"]), op=MPI.SUM)
-            if not np.isfinite(val):
-                val = np.inf
+            x.copy(last[0])
+            last[1] = val
+        self._last_objective = last
         self._stats.assemble += time.perf_counter() - t
         return val
+
+    def _precheck(self, x, y, *args):
+        """Remember the search direction's size (inf-norm, mm) for the convergence test."""
+        self._direction = y.norm(PETSc.NormType.INFINITY)
+        return False
 
     def _residual(self, snes, x, b):
         t = time.perf_counter()
@@ -307,7 +395,14 @@ class Equilibrium:
 
     def _jacobian(self, snes, x, A, P):
         """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
-        inertia is checked right after factorisation, and the shift raised until K is PD."""
+        inertia is checked right after factorisation, and the shift raised until K is PD.
+        Quasi-Newton keeps the last factorisation (nothing assembled) while it serves: it
+        was not shifted and the last solve needed at most ``lag_its`` iterations."""
+        if (snes is not None and snes.getType() == "qn" and self._pc_ready
+                and not self._refactor and self._shift == 0 and self._step_shift == 0
+                and self._last_its <= self.lag_its):
+            self._stats.lagged += 1
+            return
         t = time.perf_counter()
         self._set_state(x)
         self._assemble_jacobian(A)
@@ -321,14 +416,16 @@ class Equilibrium:
             A.shift(self._shift)
         self._step_shift = self._shift
         pc = self.ksp.getPC()
-        reuse = (self.lag_its > 0 and self._pc_ready and not self._refactor
-                 and self._shift == 0 and self.ksp.getIterationNumber() <= self.lag_its)
+        reuse = (self.method == "newton" and self.lag_its > 0 and self._pc_ready
+                 and not self._refactor and self._shift == 0
+                 and self.ksp.getIterationNumber() <= self.lag_its)
         pc.setReusePreconditioner(reuse)   # lagging: CG on the new K, the old factor as PC
         self._pc_ready, self._refactor = True, False
         if reuse:
             self._stats.lagged += 1
             return
         self._stats.factorisations += 1
+        self._stale_pc = False
         if pc.getType() != "cholesky":
             return
         while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
@@ -381,10 +478,13 @@ class Equilibrium:
         self._x_prev.axpy(-1.0, x)
         step = self._x_prev.norm(PETSc.NormType.INFINITY)
         x.copy(self._x_prev)
-        # a small step proves convergence only if it was a full Newton step (no shift)
-        if step <= self.xtol and fnorm <= self.frtol * self._f0 and self._step_shift == 0:
+        if snes.getType() == "qn":   # a short step AND a short search direction
+            step, full = max(step, self._direction), True
+        else:   # a small step proves convergence only if it was a full Newton step (no shift)
+            full = self._step_shift == 0
+        if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
             return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
-        if it >= self.max_it:
+        if it >= snes.getTolerances()[3]:
             return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
         return 0
 
@@ -397,10 +497,12 @@ class Equilibrium:
         if not np.all(np.isfinite(p)):
             raise InputError(f"parameters must be finite, got {p.tolist()}")
         self.goal.x.array[:] = self.B @ p
+        self._last_objective = None   # the energy depends on the goal
         return p
 
     def solve(self, p, max_bisections: int = 6, predict: bool = True) -> SolveStats:
-        """Equilibrium at parameters p (Np,), warm-started from the current one.
+        """Equilibrium at parameters p (Np,), warm-started from the current one (at the
+        current p, only when ``xtol`` is now tighter than `solved_xtol`: it refines).
 
         With ``predict``, Newton starts from the first-order prediction
         ``x(p0) + dx/dp (p - p0)`` (one solve with the kept preconditioner, or free when the
@@ -410,7 +512,7 @@ class Equilibrium:
         p = np.asarray(p, dtype=float).reshape(-1)
         self.set_params(p)  # validates
         self._stats = SolveStats()
-        if np.array_equal(p, self.p):   # already there
+        if np.array_equal(p, self.p) and self.xtol >= self.solved_xtol:   # already there
             self._set_state(self.u_eq)
             return self._stats
         t0 = time.perf_counter()
@@ -452,6 +554,7 @@ class Equilibrium:
         the tissue did not let the bone reach."""
         self.set_params(p)
         self.p = p.copy()
+        self.solved_xtol = self.xtol
         self._uvec.copy(self.u_eq)
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
@@ -464,37 +567,61 @@ class Equilibrium:
         return st
 
     def _newton(self, p, p_from):
-        """One SNES solve at p from the equilibrium at p_from (or a prediction of it); when
-        it fails, raise the diagonal shift and resume. The residual tolerance is relative to
-        the load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start."""
+        """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
+        quasi-Newton fails, Newton restarts from the same start; when Newton fails, the
+        diagonal shift is raised and it resumes. The
+        residual tolerance is relative to the load of the step, |df/dp (p - p_from)|, not
+        to the (maybe predicted) start; with no load (a refinement) only the step counts."""
         self.set_params(p)
         self._shift = 0.0
         load = self._load(p - p_from)
-        self._f_ref = load.norm() or None
+        # no load: refining the current equilibrium to a tighter xtol, where only steps count
+        self._f_ref = load.norm() or np.inf
         load.destroy()
         self._uvec.copy(self._x)
+        start = self._x.copy()
+        try:
+            self._iterate(p, start)
+        finally:
+            start.destroy()
+            self._shift = 0.0
+
+    def _iterate(self, p, start):
+        """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
+        `SolverError` when Newton fails even with the largest retry shift."""
+        snes = self._method_snes()
         shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
         while True:
-            self.snes.solve(None, self._x)
-            reason = self.snes.getConvergedReason()
-            self._stats.newton_iterations += self.snes.getIterationNumber()
-            self._stats.linear_iterations += self.snes.getLinearSolveIterations()
+            snes.solve(None, self._x)
+            reason = snes.getConvergedReason()
+            self._last_its = snes.getIterationNumber()
+            self._stats.newton_iterations += self._last_its
+            self._stats.linear_iterations += snes.getLinearSolveIterations()
             self._set_state(self._x)
+            crushed = False
             if reason > 0 and np.all(np.isfinite(self.u.x.array)):
                 gap = self.active_goal_error()
-                if gap > GOAL_FAILURE_MM:
+                if gap <= GOAL_FAILURE_MM:
+                    return
+                crushed = True
+                if snes is self._newton_snes:
                     raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
-                break
+            self._refactor = True
+            if snes is not self._newton_snes:   # Newton from where this solve started
+                log.info("%s: SNES reason %d after %d iterations%s: Newton takes over",
+                         snes.getType(), reason, self._last_its,
+                         " (tissue crushed)" if crushed else "")
+                snes = self._newton_snes
+                start.copy(self._x)
+                continue
             if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
             shift = self._shift = max(100 * shift, 1e-2 * self._diag_scale)
-            self._refactor = True
             self._stats.shifts.append(shift)
             log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
-                     self.snes.getIterationNumber(), shift)
-        self._shift = 0.0
+                     self._last_its, shift)
 
     # ------------------------------------------------------------------ linearisation at x(p)
     def _invalidate(self):
@@ -512,14 +639,16 @@ class Equilibrium:
 
     def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
         """out = K⁻¹ rhs, K = df/du at the current equilibrium (collective; Dirichlet rows
-        are identity). CG preconditioned by the last Newton factorisation; rebuilt at the
-        equilibrium only if CG fails. Returns the CG iteration count."""
+        are identity). CG preconditioned by the kept factorisation; it is rebuilt at the
+        equilibrium when the previous tangent solve needed more than `TANGENT_LAG_ITS`
+        iterations with it (then it also serves the next solves as quasi-Newton's start), or
+        when CG fails. Returns the CG iteration count."""
         self._assemble_K()
         ksp = self.tangent_ksp
         for attempt in range(2):
-            if attempt or not self._pc_ready:   # (re)build the preconditioner at x(p)
+            if attempt or not self._pc_ready or self._stale_pc:   # rebuild it at x(p)
                 self._refactor = True
-                self._jacobian(self.snes, self.u_eq, self.A, self.A)
+                self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
                 self.ksp.setOperators(self.A)
                 self.ksp.getPC().setUp()
                 self._set_state(self.u_eq)
@@ -528,6 +657,7 @@ class Equilibrium:
             if ksp.getConvergedReason() > 0:
                 if attempt:
                     ksp.setType("cg")
+                self._stale_pc = ksp.getIterationNumber() > TANGENT_LAG_ITS
                 return ksp.getIterationNumber()
         raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
                           f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "
@@ -581,12 +711,12 @@ class Equilibrium:
         return None
 
     def snapshot(self):
-        """(p, u) of the current equilibrium, for `restore`."""
-        return self.p.copy(), self.u_eq.copy()
+        """(p, u, solved_xtol) of the current equilibrium, for `restore`."""
+        return self.p.copy(), self.u_eq.copy(), self.solved_xtol
 
     def restore(self, snap):
         """Return to an equilibrium saved by `snapshot` (no solve)."""
-        p, u = snap
+        p, u, self.solved_xtol = snap
         self.set_params(p)
         self.p = p.copy()
         u.copy(self.u_eq)
@@ -602,6 +732,7 @@ class Equilibrium:
 
     def destroy(self):
         self._invalidate()
-        for obj in [self.snes, self.tangent_ksp, self.A, self.K, self.b, self._x, self.u_eq,
-                    self.dfdg, *self.dfdp]:
+        self._drop_qn_snes()
+        for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
+                    self._x, self.u_eq, self.dfdg, *self.dfdp]:
             obj.destroy()

@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from inverse.objective import Objective
+from inverse.treatment import FTOL
 from meshes.errors import InputError, SolverError
 
 log = logging.getLogger("orthodiff.plan")
@@ -88,18 +89,34 @@ def reduced_step(S, weights3, r, p, tikhonov, mu, free):
 
 
 def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iterations: int = 20,
-                 gtol: float = 1e-9, ftol: float = 1e-6, xtol: float = 1e-7,
+                 gtol: float = 1e-9, ftol: float = FTOL, xtol: float = 1e-7,
                  mu: float = 1e-9, armijo: float = 1e-4, max_backtracks: int = 8,
                  max_step: float = 10.0, mode: str = "auto", callback=None) -> PlanResult:
     """Minimise ``objective`` over the scene's parameters from ``p0`` (default 0).
 
     Stops when the projected gradient is below ``gtol`` (mm² per unit), T decreases by less
     than ``ftol`` relative, the step is below ``xtol`` (units), or T < 1e-14 mm². A step
-    is at most ``max_step`` (mm or degrees) in any parameter. ``callback(p, entry)`` is
-    called at the start and after every accepted iteration with its history entry.
+    is at most ``max_step`` (mm or degrees) in any parameter. The forward solves stop at
+    the equilibrium's own xtol or ``ftol`` x the mean landmark distance, whichever is
+    smaller: their landmark error stays below the relative change of T the plan resolves,
+    and a resumed plan follows the same path.
+    ``callback(p, entry)`` is called at the start and after every accepted iteration with
+    its history entry.
     """
+    eq = scene.eq
+    xtol_forward = eq.xtol
+    try:
+        return _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol,
+                             mu, armijo, max_backtracks, max_step, mode, callback)
+    finally:
+        eq.xtol = xtol_forward
+
+
+def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol, mu, armijo,
+                  max_backtracks, max_step, mode, callback):
     t_start = time.perf_counter()
     eq = scene.eq
+    xtol_forward = eq.xtol
     n_p = eq.n_params
     p = np.zeros(n_p) if p0 is None else scene.param_vector(p0)
     p_init = p.copy()
@@ -119,6 +136,9 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
             timings[key] += time.perf_counter() - t
 
     newton = forward(p, "forward") if np.any(p != eq.p) else 0
+    eq.xtol = min(xtol_forward, ftol * float(objective.distances().mean()))
+    if eq.xtol < eq.solved_xtol:   # the start to the plan's accuracy
+        newton += forward(p, "forward")
     T = T0 = objective.value()
     w3 = np.repeat(objective.weights, 3)
     history = [dict(iteration=0, T=T, mean_distance_mm=float(objective.distances().mean()),
@@ -141,6 +161,7 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
         if np.max(np.abs(g[free]), initial=0.0) <= gtol:
             converged, reason, it = True, "projected gradient below gtol", it - 1
             break
+        eq.xtol = min(xtol_forward, ftol * history[-1]["mean_distance_mm"])
         base = eq.snapshot()
         accepted, newton = False, 0
         for _ in range(6):   # raise the damping until a step is accepted

@@ -148,13 +148,17 @@ class Scene:
 
         return default_targets(self.case, self.landmarks(rest=True))
 
-    def plan(self, targets=None, landmarks=None, weights=None, tikhonov: float = 0.0,
+    def plan(self, targets=None, landmarks=None, weights=None, tikhonov: float | None = None,
              p0=None, **options):
         """Plan the treatment that brings landmarks to ``targets`` (default: the case's
-        built-in goal). Returns `inverse.planner.PlanResult`; the scene is left at the
-        planned equilibrium. ``options`` go to `inverse.planner.gauss_newton`."""
+        built-in goal); ``tikhonov`` defaults to `inverse.treatment.TIKHONOV`. Returns
+        `inverse.planner.PlanResult`; the scene is left at the planned equilibrium.
+        ``options`` go to `inverse.planner.gauss_newton` (stops at a relative decrease of
+        T below ``ftol`` = `inverse.treatment.FTOL` by default)."""
         from inverse.planner import gauss_newton
+        from inverse.treatment import TIKHONOV
 
+        tikhonov = TIKHONOV if tikhonov is None else tikhonov
         targets = self.default_targets() if targets is None else targets
         obj = self.objective(targets, landmarks, weights, tikhonov)
         return gauss_newton(self, obj, p0=p0, **options)

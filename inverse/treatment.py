@@ -39,6 +39,11 @@ MOTIONS = {  # name: (kind, axis, unit, bounds)
 #: vertical position (their rotations are poorly determined by skin landmarks).
 PLAN_PARAMS = [f"mandible.{m}" for m in MOTIONS] + [
     f"maxilla_{s}.{m}" for s in "LR" for m in ("advance_mm", "vertical_mm")]
+#: Default Tikhonov weight α (mm² per unit²) and relative-decrease stop of a plan, shared by
+#: `Scene.plan` and ``scripts/plan.py``: with α = 0 the motions the landmarks do not decide
+#: drift to their bounds (the coarse class3-asym plan then crushes tissue).
+TIKHONOV = 0.01
+FTOL = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)

@@ -65,6 +65,9 @@ def add_scene_args(ap, plan: bool = False):
                     help="comma-separated subset of parameter names")
     ap.add_argument("--solver", default="direct", help="linear solver preset: direct, cholmod, "
                     "gamg")
+    ap.add_argument("--method", default="qn", choices=("qn", "newton"),
+                    help="nonlinear method: quasi-Newton on a kept factorisation (default) "
+                    "or Newton (a factorisation per step)")
     ap.add_argument("--penalty", type=float, default=None, help="active penalty k, kPa/mm")
     ap.add_argument("--degree", type=int, default=1, choices=(1, 2),
                     help="Lagrange degree of the displacement (P2: ~7x the dofs, see BENCHMARKS)")
@@ -73,7 +76,8 @@ def add_scene_args(ap, plan: bool = False):
 def scene_from_args(args, comm):
     from inverse.scene import Scene
 
-    kw = {"solver": args.solver, "comm": comm, "degree": args.degree}
+    kw = {"solver": args.solver, "comm": comm, "degree": args.degree,
+          "newton": {"method": args.method}}
     if args.params_used:
         kw["params_used"] = [s.strip() for s in args.params_used.split(",") if s.strip()]
     if args.penalty is not None:

@@ -26,6 +26,7 @@ include nothing cached in memory; the mesh comes from the disk cache and FFCx's 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -95,7 +96,7 @@ def forward(args) -> None:
     """Forward equilibrium across resolutions, presets and rank counts: time, memory,
     iterations. Iterative presets run up to ``--iterative-up-to`` (they take ~100x longer)."""
     rows = []
-    head = ["resolution", "vertices", "dofs", "ranks", "solver", "Newton its", "KSP its",
+    head = ["resolution", "vertices", "dofs", "ranks", "solver", "method", "its", "KSP its",
             "shifts", "factorisations", "assemble s", "linear solve s", "equilibrium s",
             "peak RSS MiB", "goal err mm"]
     levels = args.resolutions.split(",")
@@ -104,16 +105,17 @@ def forward(args) -> None:
         for solver in args.solvers.split(","):
             if solver == "gamg" and i > last_iter:
                 continue
-            for n in map(int, args.ranks.split(",")):
+            for n, method in itertools.product(map(int, args.ranks.split(",")),
+                                               args.methods.split(",")):
                 if solver == "cholmod" and n > 1:
                     continue   # PETSc's CHOLMOD is sequential
-                r = _simulate(res, solver, n)
+                r = _simulate(res, solver, n, extra=["--method", method])
                 if "error" in r:
-                    rows.append([res, "", "", n, solver, f"failed: {r['error'][:60]}"]
-                                + [""] * (len(head) - 6))
+                    rows.append([res, "", "", n, solver, method, f"failed: {r['error'][:60]}"]
+                                + [""] * (len(head) - 7))
                 else:
                     t = r["timings_s"]
-                    rows.append([res, r["n_vertices"], 3 * r["n_vertices"], n, solver,
+                    rows.append([res, r["n_vertices"], 3 * r["n_vertices"], n, solver, method,
                                  r["newton_iterations"], r["linear_iterations"],
                                  len(r["diagonal_shifts"]), r["factorisations"],
                                  f"{t['assemble']:.2f}", f"{t['linear_solve']:.2f}",
@@ -121,6 +123,8 @@ def forward(args) -> None:
                                  f"{r['active_goal_error_max_mm']:.3f}"])
                 print(rows[-1], flush=True)
     body = _header("Forward equilibrium (rest to 5 mm mandible advance, class3)", args) + [
+        "`method`: quasi-Newton (L-BFGS on one kept factorisation, the default) or Newton "
+        "(a factorisation per step); `its` counts its nonlinear iterations. "
         "`equilibrium s` is the whole solve (assembly + factorisation/solves + line search); "
         "`linear solve s` is its part outside assembly; `KSP its` counts Krylov iterations "
         "(1 per Newton step with a direct factorisation); `shifts` counts diagonal "
@@ -396,17 +400,24 @@ def acc_mesh(args) -> None:
     _write_section("accuracy-mesh", "\n".join(body))
 
 
-TOLERANCE_CHOICE = (
-    "The default is the cheapest setting that is also safe for small treatments: xtol = "
-    "0.1 mm, frtol = 1e-2. A first Newton step shorter than xtol is accepted, so a treatment "
-    "smaller than xtol ends at the linear (first-order) solution; at 1 mm that errs 0.03 mm "
-    "(prediction table), at 0.1 mm about 3e-4 mm (the error grows with the square of the "
-    "step). xtol = 1 mm passes the curve above only because its treatment is large.")
+TOLERANCE_CHOICE = {
+    "newton": "The default is the cheapest setting that is also safe for small treatments: "
+    "xtol = 0.1 mm, frtol = 1e-2. A first Newton step shorter than xtol is accepted, so a "
+    "treatment smaller than xtol ends at the linear (first-order) solution; at 1 mm that errs "
+    "0.03 mm (prediction table), at 0.1 mm about 3e-4 mm (the error grows with the square of "
+    "the step). xtol = 1 mm passes the curve above only because its treatment is large.",
+    "qn": "Quasi-Newton converges linearly, so its test asks for the last step and the search "
+    "direction both below xtol; the default xtol = 0.01 mm keeps a margin of ~10 below "
+    "1e-3 mm at the landmarks. Below xtol = 1e-4 mm (`QN_MIN_XTOL`) a solve uses Newton."}
+#: xtol settings (mm) of the tolerance curve per method; frtol = xtol / 10.
+TOLERANCE_XTOLS = {"newton": [10.0 ** -k for k in range(0, 8)],
+                   "qn": [10.0 ** -k for k in (0.5, 1, 1.5, 2, 2.5, 3, 3.5)]}
 
 
 def acc_tolerance(args) -> None:
-    """Newton tolerances (xtol mm, frtol) against landmark error and time: from rest, and
-    warm-started (first-order prediction) after a small change, as in a plan's trials."""
+    """Tolerances (xtol mm, frtol) of each method against landmark error and time: from
+    rest, and warm-started (first-order prediction) after a small change, as in a plan's
+    trials. Reference: Newton to 1e-10 mm."""
     import time
 
     import numpy as np
@@ -414,30 +425,41 @@ def acc_tolerance(args) -> None:
     sys.path.insert(0, str(ROOT))
     from inverse.scene import Scene
 
-    settings = [(10.0 ** -k, 10.0 ** -(k + 1)) for k in range(0, 8)]
-    out, refs = {}, {}
-    for res in args.resolutions_tol.split(","):
-        curve = []
-        for xtol, frtol in [(1e-10, 1e-12), *settings]:   # reference first
-            scene = Scene.from_case("class3", res, newton=dict(xtol=xtol, frtol=frtol))
-            p = scene.param_vector(dict(t.split("=") for t in TREATMENT))
-            row = [xtol, frtol]
-            for q in (p, p + 0.3 * np.eye(len(p))[0] + 0.1 * np.eye(len(p))[1]):
-                t = time.perf_counter()
-                st = scene.solve(q)
-                dt = time.perf_counter() - t
-                lm = np.array(list(scene.landmarks().values()))
-                refs.setdefault((res, len(row)), lm)
-                row += [st.newton_iterations, dt, float(np.linalg.norm(
-                    lm - refs[(res, len(row))], axis=1).max())]
-            curve.append(row)
-            print(res, row, flush=True)
-            scene.eq.destroy()
-        out[res] = curve[1:]
+    refs = {}
+    for method in args.methods_tol.split(","):
+        out = {}
+        for res in args.resolutions_tol.split(","):
+            curve = []
+            settings = [(x, x / 10, method) for x in TOLERANCE_XTOLS[method]]
+            for xtol, frtol, m in [(1e-10, 1e-12, "newton"), *settings]:   # reference first
+                if (res, 2) in refs and xtol == 1e-10:
+                    continue
+                scene = Scene.from_case("class3", res,
+                                        newton=dict(method=m, xtol=xtol, frtol=frtol))
+                p = scene.param_vector(dict(t.split("=") for t in TREATMENT))
+                row = [xtol, frtol]
+                for q in (p, p + 0.3 * np.eye(len(p))[0] + 0.1 * np.eye(len(p))[1]):
+                    t = time.perf_counter()
+                    st = scene.solve(q)
+                    dt = time.perf_counter() - t
+                    lm = np.array(list(scene.landmarks().values()))
+                    refs.setdefault((res, len(row)), lm)
+                    row += [st.newton_iterations, dt, float(np.linalg.norm(
+                        lm - refs[(res, len(row))], axis=1).max())]
+                curve.append(row)
+                print(method, res, row, flush=True)
+                scene.eq.destroy()
+            out[res] = curve[-len(settings):]
+        _tolerance_section(method, out, args)
+
+
+def _tolerance_section(method: str, out: dict, args) -> None:
+    """BENCHMARKS section and plot of one method's tolerance curve."""
     rows = [[res, f"{c[0]:.0e}", f"{c[1]:.0e}", c[2], f"{c[3]:.2f}", f"{c[4]:.1e}", c[5],
              f"{c[6]:.2f}", f"{c[7]:.1e}"] for res, cs in out.items() for c in cs]
     chosen = {res: max((c for c in cs if c[4] < 1e-3 and c[7] < 1e-3), key=lambda c: c[0])
               for res, cs in out.items()}
+    name = {"newton": "Newton", "qn": "quasi-Newton"}[method]
 
     def draw(plt):
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
@@ -450,23 +472,24 @@ def acc_tolerance(args) -> None:
                                    fontsize=7)
             ax[k].axhline(1e-3, ls="--", c="gray", label="1e-3 mm")
             ax[k].set(xlabel="equilibrium wall time (s)", ylabel="max landmark error (mm)",
-                      title=f"{what}; labels: xtol mm (frtol = xtol/10)")
+                      title=f"{name}, {what}; labels: xtol mm")
             ax[k].legend()
 
-    png = _plot("tolerance", draw)
-    body = _header("Accuracy: Newton tolerances", args) + [
+    suffix = "" if method == "newton" else "-" + method
+    png = _plot("tolerance" + suffix, draw)
+    body = _header(f"Accuracy: {name} tolerances", args) + [
         f"class3, `{' '.join(TREATMENT)}` from rest, then warm-started (first-order "
         "prediction) to 0.3 mm more advance and 0.1 mm more lateral shift, 1 rank, direct "
-        "preset. Newton stops when a full (unshifted) Newton step is below `xtol` (inf-norm, "
-        "mm) and the residual is below `frtol` × the load of the step. Error: max over the 9 "
-        "landmarks against xtol = 1e-10, frtol = 1e-12.", "",
-        *_table(["resolution", "xtol mm", "frtol", "Newton its (rest)", "s (rest)",
-                 "err mm (rest)", "Newton its (warm)", "s (warm)", "err mm (warm)"], rows), "",
+        f"preset, `method={method!r}`. A solve stops when a full step is below `xtol` "
+        "(inf-norm, mm) and the residual is below `frtol` × the load of the step. Error: max "
+        "over the 9 landmarks against Newton to xtol = 1e-10, frtol = 1e-12.", "",
+        *_table(["resolution", "xtol mm", "frtol", "its (rest)", "s (rest)",
+                 "err mm (rest)", "its (warm)", "s (warm)", "err mm (warm)"], rows), "",
         "Cheapest setting with landmark error < 1e-3 mm in both: " + "; ".join(
-            f"{res}: xtol = {c[0]:.0e} mm, frtol = {c[1]:.0e} ({c[2]} + {c[5]} Newton steps)"
-            for res, c in chosen.items()) + ".", "", TOLERANCE_CHOICE, "",
+            f"{res}: xtol = {c[0]:.0e} mm ({c[2]} + {c[5]} iterations)"
+            for res, c in chosen.items()) + ".", "", TOLERANCE_CHOICE[method], "",
         f"![tolerance]({png})"]
-    _write_section("accuracy-tolerance", "\n".join(body))
+    _write_section("accuracy-tolerance" + suffix, "\n".join(body))
 
 
 def acc_prediction(args) -> None:
@@ -648,6 +671,7 @@ def main():
     f.add_argument("--resolutions", default="tiny,coarse,medium,paper")
     f.add_argument("--solvers", default="direct,cholmod,gamg")
     f.add_argument("--ranks", default="1,2")
+    f.add_argument("--methods", default="qn,newton")
     f.add_argument("--iterative-up-to", default="paper",
                    help="largest resolution for the GAMG preset")
     pl = sub.add_parser("plan", help="derivatives, exploration and whole plans")
@@ -659,6 +683,7 @@ def main():
                    help="mesh part; the last is the reference")
     a.add_argument("--ranks-mesh", type=int, default=2)
     a.add_argument("--resolutions-tol", default="medium,paper")
+    a.add_argument("--methods-tol", default="newton,qn")
     a.add_argument("--resolutions-pred", default="coarse,medium")
     a.add_argument("--resolution-grad", default="medium")
     a.add_argument("--resolutions-p1", default="tiny,coarse,medium,paper")

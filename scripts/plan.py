@@ -74,14 +74,16 @@ def _load_checkpoint(path, signature: dict, comm) -> dict:
 
 
 def main(argv=None):
+    from inverse.treatment import FTOL, TIKHONOV
+
     ap = scene_parser(__doc__, plan=True)
     ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm (default: the case's "
                     "clinical goal)")
     ap.add_argument("--landmarks", help="comma-separated subset of the targets to use")
-    ap.add_argument("--tikhonov", type=float, default=0.01,
+    ap.add_argument("--tikhonov", type=float, default=TIKHONOV,
                     help="α of ½α|p|², mm² per unit²: prefers small movements where the "
                     "landmarks do not decide")
-    ap.add_argument("--ftol", type=float, default=1e-3,
+    ap.add_argument("--ftol", type=float, default=FTOL,
                     help="stop when T decreases by less than this fraction in an iteration")
     ap.add_argument("--max-iterations", type=int, default=20)
     ap.add_argument("--checkpoint", help="JSON file rewritten (atomically) after every "

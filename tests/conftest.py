@@ -23,6 +23,10 @@ def tiny_anatomy():
     return synthetic_head("class3", "tiny")
 
 
+#: Newton to 1e-10: the equilibrium options of `tight_scene`.
+TIGHT = dict(method="newton", xtol=1e-10, frtol=1e-10)
+
+
 def _mandible_only(anatomy, **kw):
     from inverse.scene import Scene
     from inverse.treatment import rigid_treatment
@@ -45,16 +49,19 @@ def mandible_scene(tiny_anatomy):
     return scene
 
 
+@pytest.fixture(scope="session")
+def _tight_scene(tiny_anatomy):
+    scene = _mandible_only(tiny_anatomy, newton=TIGHT)
+    scene.case, scene.resolution = "class3", "tiny"
+    return scene
+
+
 @pytest.fixture
-def tight_scene(mandible_scene):
-    """The mandible scene with Newton tolerances far below the defaults (for rate and
-    finite-difference checks), reset to rest and the defaults afterwards."""
-    eq = mandible_scene.eq
-    tol = eq.xtol, eq.frtol
-    eq.xtol, eq.frtol = 1e-10, 1e-10
-    yield mandible_scene
-    eq.xtol, eq.frtol = tol
-    mandible_scene.solve(np.zeros(6))
+def tight_scene(_tight_scene):
+    """class3/tiny, six mandible motions, solved by Newton to tolerances far below the
+    defaults (for rate, Taylor and finite-difference checks); back at rest afterwards."""
+    yield _tight_scene
+    _tight_scene.solve(np.zeros(6))
 
 
 def _central_differences(scene, obj, p, h: float = 1e-3) -> np.ndarray:

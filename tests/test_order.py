@@ -2,13 +2,14 @@
 
 import numpy as np
 import pytest
+from conftest import TIGHT
 
 from fem.domain import create_domain
 
 
 @pytest.fixture(scope="module")
 def p2_scene(tiny_anatomy, mandible_only):
-    return mandible_only(tiny_anatomy, degree=2, newton=dict(xtol=1e-10, frtol=1e-10),
+    return mandible_only(tiny_anatomy, degree=2, newton=TIGHT,
                          params_used=["mandible.advance_mm", "mandible.lateral_mm"])
 
 

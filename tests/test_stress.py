@@ -24,26 +24,31 @@ def _assert_sound(scene, st, goal_mm=GOAL_TOLERANCE_MM):
 
 @pytest.mark.parametrize("nu", [0.47, 0.49, 0.495, 0.499])
 def test_near_incompressible_tissue_converges(mandible_only, tiny_anatomy, nu):
-    """Up to ν = 0.499 the 5 mm advance converges; the iteration count is bounded."""
+    """Up to ν = 0.499 the 5 mm advance converges with bounded work: up to ν = 0.495 on
+    quasi-Newton's one factorisation; at 0.499 Newton (a factorisation per step) may take
+    over."""
     scene = mandible_only(tiny_anatomy, material=NeoHookean(nu=nu))
     st = scene.solve({"mandible.advance_mm": 5.0})
     # the goal error grows with the bulk modulus (λ/μ = 399 at 0.499): allow 0.1 mm there
     _assert_sound(scene, st, goal_mm=0.1)
-    assert st.newton_iterations <= 12, f"ν = {nu}: {st.newton_iterations} Newton steps"
+    assert st.factorisations <= (1 if nu <= 0.495 else 12), f"ν = {nu}: {st}"
     scene.eq.destroy()
 
 
 def test_penalty_stiffness_sweep(mandible_only, tiny_anatomy):
-    """k from 1e-2 to 1e6 x the default: converges in the same few steps, and the goal gap
-    falls as 1/k (the penalty's equilibrium: k·gap balances a tissue force independent of k)."""
-    gaps = {}
+    """k from 1e-2 to 1e6 x the default: converges in the same few steps on one
+    factorisation, and the goal gap falls as 1/k (the penalty's equilibrium: k·gap balances
+    a tissue force independent of k)."""
+    gaps, its = {}, []
     for f in (1e-2, 1.0, 1e2, 1e4, 1e6):
         scene = mandible_only(tiny_anatomy, penalty=DEFAULT_PENALTY * f)
         st = scene.solve({"mandible.advance_mm": 5.0})
         _assert_sound(scene, st, goal_mm=1.0)
-        assert st.newton_iterations <= 10
+        assert st.factorisations == 1, st
+        its.append(st.newton_iterations)
         gaps[f] = st.goal_error
         scene.eq.destroy()
+    assert max(its) <= min(its) + 2, its
     k_gap = np.array([f * g for f, g in gaps.items() if f >= 1.0])
     assert np.ptp(k_gap) < 0.05 * k_gap.mean(), gaps       # gap ∝ 1/k once k is stiff
     assert gaps[1e-2] > 30 * gaps[1.0]                       # soft k: bone misses its goal
@@ -103,23 +108,21 @@ def test_crushing_rotation_is_not_an_equilibrium(mandible_scene):
     mandible_scene.solve(np.zeros(6))
 
 
-def test_line_search_rejects_inverting_trials(mandible_scene):
+def test_line_search_rejects_inverting_trials(mandible_scene, monkeypatch):
     """From rest, the full Newton step of a 25 mm advance inverts elements: the energy line
     search sees +inf there, backtracks, and no NaN ever reaches the iterate."""
     eq = mandible_scene.eq
     mandible_scene.solve(np.zeros(6))
-    seen = []
+    seen, objective = [], eq._objective
 
     def spy(snes, x):
-        val = eq._objective(snes, x)
+        val = objective(snes, x)
         seen.append(val)
         return val
 
-    eq.snes.setObjective(spy)
-    try:
-        st = eq.solve(mandible_scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
-    finally:
-        eq.snes.setObjective(eq._objective)
+    monkeypatch.setattr(eq, "_objective", spy)
+    st = eq.solve(mandible_scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
+    monkeypatch.undo()
     assert np.inf in seen, "no trial step inverted an element: the test lost its purpose"
     assert not any(np.isnan(v) for v in seen)
     assert all(np.isfinite(st.residual_history))
