@@ -208,6 +208,7 @@ class Equilibrium:
         self.ksp = self._make_snes(prefix, solver, options or {})
         self._f_ref = None
         self._refactor = False
+        self._quick = False                  # this solve: quasi-Newton only, no fallback
         self._last_objective = None          # [x, energy] of the last objective call
         self._direction = np.inf             # inf-norm of the last search direction, mm
         self._last_its = 0                   # iterations of the last SNES solve
@@ -500,9 +501,12 @@ class Equilibrium:
         self._last_objective = None   # the energy depends on the goal
         return p
 
-    def solve(self, p, max_bisections: int = 6, predict: bool = True) -> SolveStats:
+    def solve(self, p, max_bisections: int = 6, predict: bool = True,
+              quick: bool = False) -> SolveStats:
         """Equilibrium at parameters p (Np,), warm-started from the current one (at the
         current p, only when ``xtol`` is now tighter than `solved_xtol`: it refines).
+        ``quick``: quasi-Newton only; where it fails, raise `SolverError` at once (no
+        Newton, no continuation), e.g. for a line-search trial that may be shortened.
 
         With ``predict``, Newton starts from the first-order prediction
         ``x(p0) + dx/dp (p - p0)`` (one solve with the kept preconditioner, or free when the
@@ -512,6 +516,9 @@ class Equilibrium:
         p = np.asarray(p, dtype=float).reshape(-1)
         self.set_params(p)  # validates
         self._stats = SolveStats()
+        self._quick = quick and self.method != "newton"
+        if self._quick:
+            max_bisections = 0
         if np.array_equal(p, self.p) and self.xtol >= self.solved_xtol:   # already there
             self._set_state(self.u_eq)
             return self._stats
@@ -609,6 +616,8 @@ class Equilibrium:
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
             self._refactor = True
+            if snes is not self._newton_snes and self._quick:
+                raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
             if snes is not self._newton_snes:   # Newton from where this solve started
                 log.info("%s: SNES reason %d after %d iterations%s: Newton takes over",
                          snes.getType(), reason, self._last_its,
