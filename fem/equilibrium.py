@@ -523,7 +523,7 @@ class Equilibrium:
             self._set_state(self.u_eq)
             return self._stats
         t0 = time.perf_counter()
-        p_done = self.p.copy()
+        p_done, p_start = self.p.copy(), self.p.copy()
         u_good = self.u_eq.copy()   # self.u may have been changed by the caller
         start = self._predict(p) if predict else None
         self._invalidate()
@@ -540,7 +540,10 @@ class Equilibrium:
                 self._set_state(u_good)
                 depth += 1
                 if depth > max_bisections:   # keep the largest step reached
+                    solved_xtol = self.solved_xtol
                     self._commit(p_done, t0)
+                    if np.array_equal(p_done, p_start):   # no step made: its old accuracy
+                        self.solved_xtol = solved_xtol
                     u_good.destroy()
                     raise SolverError(
                         f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
@@ -576,9 +579,9 @@ class Equilibrium:
     def _newton(self, p, p_from):
         """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
         quasi-Newton fails, Newton restarts from the same start; when Newton fails, the
-        diagonal shift is raised and it resumes. The
-        residual tolerance is relative to the load of the step, |df/dp (p - p_from)|, not
-        to the (maybe predicted) start; with no load (a refinement) only the step counts."""
+        diagonal shift is raised and it resumes. The residual tolerance is relative to the
+        load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start; with no
+        load (a refinement) only the step counts."""
         self.set_params(p)
         self._shift = 0.0
         load = self._load(p - p_from)
