@@ -323,8 +323,8 @@ class Equilibrium:
         return self._qn_snes
 
     def _make_tangent_ksp(self, prefix: str):
-        """CG on K at the equilibrium, preconditioned by whatever the last Newton step built
-        (its factorisation or GAMG hierarchy): no refactorisation for adjoints/sensitivities."""
+        """CG on K at the equilibrium, preconditioned by the kept factorisation (or GAMG
+        hierarchy) of the forward solves; `solve_tangent` decides when to rebuild it."""
         ksp = PETSc.KSP().create(self.domain.comm)
         ksp.setOptionsPrefix(prefix + "tangent_")
         ksp.setType("cg")
