@@ -208,8 +208,8 @@ class Equilibrium:
         self.ksp = self._make_snes(prefix, solver, options or {})
         self._f_ref = None
         self._refactor = False
-        self._quick = False                  # this solve: quasi-Newton only, no fallback
-        self._last_objective = None          # [x, energy] of the last objective call
+        self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
+        self._obj_val = None                 # its energy (None: not valid)
         self._direction = np.inf             # inf-norm of the last search direction, mm
         self._last_its = 0                   # iterations of the last SNES solve
         self._pc_ready = False               # the SNES PC holds a factorisation of some K
@@ -361,21 +361,16 @@ class Equilibrium:
         """Energy at x, mJ; +inf where any cell is inverted (ln det F is NaN at a P1 cell's
         single quadrature point; P2 is also checked at the vertices). The line search asks
         again for the point it accepted last: that value is remembered."""
-        last = self._last_objective
-        if last is not None and last[0].equal(x):
-            return last[1]
+        if self._obj_val is not None and self._obj_x.equal(x):
+            return self._obj_val
         t = time.perf_counter()
         self._set_state(x)
         val = self.domain.comm.allreduce(
             dolfinx.fem.assemble_scalar(self.forms["energy"]), op=MPI.SUM)
         if not np.isfinite(val) or (self.domain.degree > 1 and not self.min_det_F() > 0):
             val = np.inf
-        if last is None:
-            last = [x.copy(), val]
-        else:
-            x.copy(last[0])
-            last[1] = val
-        self._last_objective = last
+        x.copy(self._obj_x)
+        self._obj_val = val
         self._stats.assemble += time.perf_counter() - t
         return val
 
@@ -498,7 +493,7 @@ class Equilibrium:
         if not np.all(np.isfinite(p)):
             raise InputError(f"parameters must be finite, got {p.tolist()}")
         self.goal.x.array[:] = self.B @ p
-        self._last_objective = None   # the energy depends on the goal
+        self._obj_val = None   # the energy depends on the goal
         return p
 
     def solve(self, p, max_bisections: int = 6, predict: bool = True,
@@ -516,8 +511,8 @@ class Equilibrium:
         p = np.asarray(p, dtype=float).reshape(-1)
         self.set_params(p)  # validates
         self._stats = SolveStats()
-        self._quick = quick and self.method != "newton"
-        if self._quick:
+        quick = quick and self.method != "newton"
+        if quick:
             max_bisections = 0
         if np.array_equal(p, self.p) and self.xtol >= self.solved_xtol:   # already there
             self._set_state(self.u_eq)
@@ -535,7 +530,7 @@ class Equilibrium:
         while todo:
             p_next = todo[-1]
             try:
-                self._newton(p_next, p_done)
+                self._newton(p_next, p_done, quick)
             except SolverError:
                 self._set_state(u_good)
                 depth += 1
@@ -576,7 +571,7 @@ class Equilibrium:
         st.linear_solve = max(st.total - st.assemble, 0.0)
         return st
 
-    def _newton(self, p, p_from):
+    def _newton(self, p, p_from, quick: bool = False):
         """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
         quasi-Newton fails, Newton restarts from the same start; when Newton fails, the
         diagonal shift is raised and it resumes. The residual tolerance is relative to the
@@ -591,14 +586,15 @@ class Equilibrium:
         self._uvec.copy(self._x)
         start = self._x.copy()
         try:
-            self._iterate(p, start)
+            self._iterate(p, start, quick)
         finally:
             start.destroy()
             self._shift = 0.0
 
-    def _iterate(self, p, start):
+    def _iterate(self, p, start, quick: bool):
         """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
-        `SolverError` when Newton fails even with the largest retry shift."""
+        `SolverError` when Newton fails even with the largest retry shift, or when
+        quasi-Newton fails and ``quick``."""
         snes = self._method_snes()
         shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
         while True:
@@ -619,7 +615,7 @@ class Equilibrium:
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
             self._refactor = True
-            if snes is not self._newton_snes and self._quick:
+            if snes is not self._newton_snes and quick:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
             if snes is not self._newton_snes:   # Newton from where this solve started
                 log.info("%s: SNES reason %d after %d iterations%s: Newton takes over",
@@ -746,5 +742,5 @@ class Equilibrium:
         self._invalidate()
         self._drop_qn_snes()
         for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self.u_eq, self.dfdg, *self.dfdp]:
+                    self._x, self._obj_x, self.u_eq, self.dfdg, *self.dfdp]:
             obj.destroy()

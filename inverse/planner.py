@@ -107,13 +107,12 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
     ``callback(p, entry)`` is called at the start and after every accepted iteration with
     its history entry.
     """
-    eq = scene.eq
-    xtol_forward = eq.xtol
+    xtol_forward = scene.eq.xtol
     try:
         return _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol,
                              mu, armijo, max_backtracks, max_step, mode, callback)
     finally:
-        eq.xtol = xtol_forward
+        scene.eq.xtol = xtol_forward
 
 
 def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol, mu, armijo,
@@ -121,6 +120,10 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
     t_start = time.perf_counter()
     eq = scene.eq
     xtol_forward = eq.xtol
+
+    def tighten(distance_mm: float):
+        """Forward solves to ftol x the mean landmark distance (or their own xtol)."""
+        eq.xtol = min(xtol_forward, ftol * distance_mm)
     n_p = eq.n_params
     p = np.zeros(n_p) if p0 is None else scene.param_vector(p0)
     p_init = p.copy()
@@ -140,7 +143,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
             timings[key] += time.perf_counter() - t
 
     newton = forward(p, "forward") if np.any(p != eq.p) else 0
-    eq.xtol = min(xtol_forward, ftol * float(objective.distances().mean()))
+    tighten(float(objective.distances().mean()))
     if eq.xtol < eq.solved_xtol:   # the start to the plan's accuracy
         newton += forward(p, "forward")
     T = T0 = objective.value()
@@ -165,7 +168,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         if np.max(np.abs(g[free]), initial=0.0) <= gtol:
             converged, reason, it = True, "projected gradient below gtol", it - 1
             break
-        eq.xtol = min(xtol_forward, ftol * history[-1]["mean_distance_mm"])
+        tighten(history[-1]["mean_distance_mm"])
         base = eq.snapshot()
         accepted, newton = False, 0
         for _ in range(6):   # raise the damping until a step is accepted
