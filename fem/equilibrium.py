@@ -58,11 +58,15 @@ METHODS = {
     "newton": {"snes_type": "newtonls"},
 }
 #: Per-method defaults of xtol (mm), max_it and lag_its (see `Equilibrium`).
-METHOD_DEFAULTS = {"qn": dict(xtol=0.01, max_it=40, lag_its=30),
+METHOD_DEFAULTS = {"qn": dict(xtol=0.005, max_it=40, lag_its=30),
                    "newton": dict(xtol=0.1, max_it=25, lag_its=0)}
 #: Below this xtol (mm) quasi-Newton's linear rate (~10 iterations a decade) loses to Newton's
 #: quadratic one: such solves use Newton.
 QN_MIN_XTOL = 1e-4
+#: Quasi-Newton has stalled when the residual norm fell by less than STALL_RATIO over the last
+#: STALL_ITS iterations (healthy: ~10x per 10); then K is refactorised at the current iterate
+#: and L-BFGS restarts from there, up to QN_REFRESHES times, before Newton takes over.
+STALL_ITS, STALL_RATIO, QN_REFRESHES = 5, 0.5, 3
 #: A tangent (adjoint, sensitivity) solve that needs more CG iterations than this with the
 #: kept factorisation has the next one refactorise at the equilibrium.
 TANGENT_LAG_ITS = 5
@@ -125,7 +129,8 @@ class Equilibrium:
             converges quadratically), and a treatment smaller than 0.1 mm, which stops
             after its first, linear step, errs ~3e-4 mm. Quasi-Newton converges linearly,
             so both its last step and its search direction must be below xtol (default
-            0.01 mm, ~1e-4 mm at the landmarks).
+            0.005 mm: at most 3.6e-4 mm at the landmarks in the tests; 0.01 mm left
+            1.8e-3 mm on a tiny mesh's return to rest).
         max_it: iterations per SNES solve (default per method, `METHOD_DEFAULTS`).
         shift_max: largest diagonal shift of the inertia check, in units of the median
             diagonal of K.
@@ -211,9 +216,11 @@ class Equilibrium:
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
         self._obj_val = None                 # its energy (None: not valid)
         self._direction = np.inf             # inf-norm of the last search direction, mm
+        self._fnorms, self._stalled = [], False   # residual norms of this SNES solve; stall
         self._last_its = 0                   # iterations of the last SNES solve
         self._pc_ready = False               # the SNES PC holds a factorisation of some K
         self._stale_pc = False               # ... which slowed the last tangent solve
+        self._pc_at_eq = False               # ... of K at the equilibrium, unshifted
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         self.solved_xtol = 0.0              # the xtol it was solved to, mm (rest: exact)
         self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
@@ -421,7 +428,7 @@ class Equilibrium:
             self._stats.lagged += 1
             return
         self._stats.factorisations += 1
-        self._stale_pc = False
+        self._stale_pc = self._pc_at_eq = False
         if pc.getType() != "cholesky":
             return
         while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
@@ -462,6 +469,9 @@ class Equilibrium:
     def _converged(self, snes, it, norms):
         xnorm, ynorm, fnorm = norms
         self._stats.residual_history.append(fnorm)
+        if it == 0:
+            self._fnorms = []
+        self._fnorms.append(fnorm)
         if not np.isfinite(fnorm):
             return PETSc.SNES.ConvergedReason.DIVERGED_FNORM_NAN
         if fnorm <= self.atol:
@@ -480,6 +490,10 @@ class Equilibrium:
             full = self._step_shift == 0
         if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
             return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
+        if snes.getType() == "qn" and it >= STALL_ITS and \
+                fnorm > STALL_RATIO * self._fnorms[it - STALL_ITS]:
+            self._stalled = True
+            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
         if it >= snes.getTolerances()[3]:
             return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
         return 0
@@ -500,7 +514,8 @@ class Equilibrium:
               quick: bool = False) -> SolveStats:
         """Equilibrium at parameters p (Np,), warm-started from the current one (at the
         current p, only when ``xtol`` is now tighter than `solved_xtol`: it refines).
-        ``quick``: quasi-Newton only; where it fails, raise `SolverError` at once (no
+        ``quick``: quasi-Newton only, from an admissible first-order prediction; where that
+        prediction inverts an element or quasi-Newton fails, raise `SolverError` at once (no
         Newton, no continuation), e.g. for a line-search trial that may be shortened.
 
         With ``predict``, Newton starts from the first-order prediction
@@ -518,9 +533,12 @@ class Equilibrium:
             self._set_state(self.u_eq)
             return self._stats
         t0 = time.perf_counter()
+        start = self.first_order(p) if predict else None
+        if quick and start is None and predict and self._can_predict(p):
+            raise SolverError(f"the first-order prediction at p = {np.round(p, 4).tolist()} "
+                              "inverts an element: no quick solve is tried")
         p_done, p_start = self.p.copy(), self.p.copy()
         u_good = self.u_eq.copy()   # self.u may have been changed by the caller
-        start = self._predict(p) if predict else None
         self._invalidate()
         self._set_state(start or u_good)
         if start is not None:
@@ -561,6 +579,7 @@ class Equilibrium:
         self.p = p.copy()
         self.solved_xtol = self.xtol
         self._uvec.copy(self.u_eq)
+        self._pc_at_eq = False
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
         if st.goal_error > GOAL_TOLERANCE_MM and self.domain.comm.rank == 0:
@@ -597,7 +616,9 @@ class Equilibrium:
         quasi-Newton fails and ``quick``."""
         snes = self._method_snes()
         shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
+        refreshes = 0
         while True:
+            self._stalled = False
             snes.solve(None, self._x)
             reason = snes.getConvergedReason()
             self._last_its = snes.getIterationNumber()
@@ -615,6 +636,11 @@ class Equilibrium:
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
             self._refactor = True
+            if snes is not self._newton_snes and self._stalled and refreshes < QN_REFRESHES:
+                refreshes += 1   # K at the current iterate, fresh L-BFGS pairs, go on
+                log.info("qn stalled after %d iterations: refactorising there", self._last_its)
+                snes = self._method_snes()
+                continue
             if snes is not self._newton_snes and quick:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
             if snes is not self._newton_snes:   # Newton from where this solve started
@@ -654,12 +680,8 @@ class Equilibrium:
         self._assemble_K()
         ksp = self.tangent_ksp
         for attempt in range(2):
-            if attempt or not self._pc_ready or self._stale_pc:   # rebuild it at x(p)
-                self._refactor = True
-                self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
-                self.ksp.setOperators(self.A)
-                self.ksp.getPC().setUp()
-                self._set_state(self.u_eq)
+            if attempt or not self._pc_ready or self._stale_pc:
+                self._factorise_at_equilibrium()
             ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
             ksp.solve(rhs, out)
             if ksp.getConvergedReason() > 0:
@@ -671,12 +693,52 @@ class Equilibrium:
                           f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "
                           "singular or indefinite at this equilibrium")
 
+    def _factorise_at_equilibrium(self):
+        """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a
+        diagonal shift only where K is not positive definite there)."""
+        self._refactor = True
+        self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
+        self.ksp.setOperators(self.A)
+        self.ksp.getPC().setUp()
+        self._set_state(self.u_eq)
+        self._pc_at_eq = self._step_shift == 0
+
     def sensitivity(self) -> list:
         """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
-        computed with Np solves on first use and cached until the equilibrium changes."""
+        computed on first use and cached until the equilibrium changes. With a direct
+        solver, one factorisation of K at the equilibrium and one block solve of all Np
+        columns (MUMPS: ~ the cost of one column); else Np tangent solves."""
         if self._sens is None:
-            self._sens = [self.tangent_step(e) for e in np.eye(self.n_params)]
+            self._sens = self._block_sensitivity() or [self.tangent_step(e)
+                                                       for e in np.eye(self.n_params)]
         return self._sens
+
+    def _block_sensitivity(self):
+        """dx/dp as one MatMatSolve with the factor of K at the equilibrium, or None (not a
+        Cholesky preset, or K is not positive definite there)."""
+        pc = self.ksp.getPC()
+        if pc.getType() != "cholesky" or self.n_params == 0:
+            return None
+        if not self._pc_at_eq:
+            self._factorise_at_equilibrium()
+            if not self._pc_at_eq:   # shifted: the tangent solves handle it
+                return None
+        n, N = self.u_eq.getLocalSize(), self.u_eq.getSize()
+        rhs = PETSc.Mat().createDense([(n, N), (None, self.n_params)], comm=self.domain.comm)
+        rhs.setUp()
+        rhs.getDenseArray()[:] = -np.stack([g.array_r for g in self.dfdp], axis=1)
+        rhs.assemble()
+        sol = rhs.duplicate()
+        pc.getFactorMatrix().matSolve(rhs, sol)
+        cols = sol.getDenseArray()
+        out = []
+        for i in range(self.n_params):
+            v = self.u_eq.duplicate()
+            v.array[:] = cols[:, i]
+            out.append(v)
+        for m in (rhs, sol):
+            m.destroy()
+        return out
 
     @property
     def has_sensitivity(self) -> bool:
@@ -701,22 +763,70 @@ class Equilibrium:
         rhs.destroy()
         return out
 
-    def _predict(self, p):
-        """x(p0) + dx/dp (p - p0) as a start for Newton, or None (no factorisation yet, no
-        change, or the prediction inverts an element)."""
-        dp = p - self.p
-        if not (np.any(dp) and (self._pc_ready or self.has_sensitivity)):
+    def _can_predict(self, p) -> bool:
+        """p differs from the equilibrium's and a factorisation (or dx/dp) is at hand."""
+        return bool(np.any(p != self.p) and (self._pc_ready or self.has_sensitivity))
+
+    def first_order(self, p, halvings: int = 0):
+        """The first-order state x(p0) + dx/dp (p - p0) as in `admissible`; None when there
+        is no factorisation yet or no change. Collective."""
+        if not self._can_predict(p):
             return None
         try:
-            x = self.tangent_step(dp)
+            step = self.tangent_step(p - self.p)
         except SolverError:
             return None
-        x.axpy(1.0, self.u_eq)
-        self._set_state(x)
-        if self.min_det_F() > 0:
-            return x
+        try:
+            return self.admissible(self.u_eq, step, halvings)
+        finally:
+            step.destroy()
+
+    def admissible(self, x0: PETSc.Vec, step: PETSc.Vec, halvings: int = 0):
+        """x0 + t step (a new PETSc vector, mm) with the largest t in 1, 1/2, ...
+        (``halvings`` times) that inverts no element, or None. Leaves the state u there.
+        Collective."""
+        x = x0.duplicate()
+        for k in range(halvings + 1):
+            x0.copy(x)
+            x.axpy(0.5 ** k, step)
+            self._set_state(x)
+            if self.min_det_F() > 0:
+                return x
         x.destroy()
         return None
+
+    def relax(self, p, x: PETSc.Vec, iterations: int) -> SolveStats:
+        """At most ``iterations`` quasi-Newton (L-BFGS) steps towards the equilibrium at p
+        (Np,) from x (updated in place, mm), on the kept factorisation: nothing is assembled
+        or factorised; each step is one residual, one triangular solve pair and its energy
+        line search (so x never inverts an element). Stops early where L-BFGS stalls
+        (`STALL_RATIO`). For cheap corrections of a prediction; the scene's equilibrium
+        (p, u) is unchanged. x must not invert an element. Collective."""
+        p = self.set_params(p)
+        self._stats = SolveStats()
+        t0 = time.perf_counter()
+        if not self._pc_ready:   # no factorisation yet: one at the equilibrium
+            self._factorise_at_equilibrium()
+        self._f_ref = None   # residual tolerance relative to the start's residual
+        self._drop_qn_snes()
+        snes = self._qn_snes = self._build_snes({**METHODS["qn"], **self._search},
+                                                iterations, self.ksp)
+        snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factorisation
+        x0 = x.copy()
+        try:
+            snes.solve(None, x)
+            self._stats.newton_iterations = snes.getIterationNumber()
+            self._set_state(x)
+            finite = self.domain.comm.allreduce(bool(np.all(np.isfinite(x.array))),
+                                                op=MPI.LAND)
+            if not (finite and self.min_det_F() > 0):
+                x0.copy(x)   # not expected: the energy line search rejects inversion
+        finally:
+            x0.destroy()
+            self.set_params(self.p)
+            self._set_state(self.u_eq)
+        self._stats.total = time.perf_counter() - t0
+        return self._stats
 
     def snapshot(self):
         """(p, u, solved_xtol) of the current equilibrium, for `restore`."""
@@ -730,6 +840,7 @@ class Equilibrium:
         u.copy(self.u_eq)
         self._set_state(self.u_eq)
         self._invalidate()
+        self._pc_at_eq = False
 
     # ------------------------------------------------------------------ outputs
     def active_goal_error(self) -> float:

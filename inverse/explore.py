@@ -2,8 +2,9 @@
 
 `SkinPredictor` holds ``x_skin(p0)`` and ``S_skin = dx_skin/dp`` (Np tangent solves with the
 kept factorisation). A prediction ``x(p0) + S dp`` is a small dense mat-vec, real time.
-`corrected` improves it with chord-Newton steps that reuse the same factorisation: each step
-is one residual assembly and one pair of triangular solves, no refactorisation.
+`corrected` improves it with a few quasi-Newton (L-BFGS) steps on the same kept factorisation:
+each step is one residual, one pair of triangular solves and an energy line search, no
+refactorisation.
 `fit_surface` is the Fig. 5c workflow: the parameters whose true equilibrium is closest to a
 (predicted or edited) skin surface.
 """
@@ -15,6 +16,11 @@ import numpy as np
 from fem.equilibrium import Equilibrium
 from inverse.objective import Objective, point_sensitivity
 
+#: Quasi-Newton steps of a corrected prediction (BENCHMARKS.md: error and time against it).
+CORRECTION_ITERATIONS = 6
+#: A first-order state that inverts an element is halved up to this many times.
+FIRST_ORDER_HALVINGS = 6
+
 
 class SkinPredictor:
     """Skin sensitivities at the scene's current equilibrium.
@@ -22,7 +28,8 @@ class SkinPredictor:
     Attributes:
         vertices: (N,) original indices of the skin vertices (same on every rank).
         x0: (N, 3) skin positions at p0, mm. S: (N, 3, Np) mm per parameter unit.
-        p0: (Np,) parameters of the equilibrium.
+        p0: (Np,) parameters of the equilibrium. It keeps x(p0) and dx/dp on the volume
+        (Np + 1 vectors), so corrections do not depend on where the scene is afterwards.
     """
 
     def __init__(self, scene):
@@ -33,6 +40,9 @@ class SkinPredictor:
         self.p0 = self.eq.p.copy()
         self.x0 = self.op.apply(self.eq.u_eq.array)
         self.S = point_sensitivity(self.eq, self.op)
+        # x(p0) and dx/dp on the volume: corrections start from them wherever the scene is
+        self._u0 = self.eq.u_eq.copy()
+        self._dxdp = [s.copy() for s in self.eq.sensitivity()]
         self._S2 = self.S.reshape(-1, self.S.shape[-1])
         self.landmark_names = list(dom.landmarks)
         self.lm_op = dom.point_operator(self.landmark_names)
@@ -48,60 +58,28 @@ class SkinPredictor:
         pts = self.lm0 + self.lm_S @ np.asarray(dp, dtype=float)
         return dict(zip(self.landmark_names, pts))
 
-    def corrected(self, dp, steps: int = 1, substeps: int = 1, max_substeps: int = 32):
-        """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp: the first-order state, then
-        ``steps`` chord-Newton steps with K's kept factorisation, repeated over ``substeps``
-        equal parts of dp (a cheap continuation). Where a first-order sub-step would invert
-        an element, the parts are doubled up to ``max_substeps``; beyond that the plain
-        prediction is returned. No refactorisation; the scene stays at x(p0). Collective."""
-        dp = np.asarray(dp, dtype=float)
-        n = substeps
-        while n <= max_substeps:
-            out = self._chord_path(dp, steps, n)
-            if out is not None:
-                return out
-            n *= 2
-        return self.predict(dp), self.predict_landmarks(dp)
-
-    def _chord_path(self, dp, steps: int, substeps: int):
+    def corrected(self, dp, iterations: int = CORRECTION_ITERATIONS):
+        """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp: the first-order state
+        (shortened while it would invert an element), then at most ``iterations``
+        quasi-Newton steps on K's kept factorisation (`Equilibrium.relax`). No assembly of
+        K, no refactorisation; the scene's equilibrium is unchanged. Collective."""
         eq: Equilibrium = self.eq
-        step = eq.tangent_step(dp / substeps)
-        x, r, dx = eq.u_eq.copy(), step.duplicate(), step.duplicate()
-        pc = eq.ksp.getPC()
+        dp = np.asarray(dp, dtype=float)
+        step = self._u0.duplicate()
+        step.set(0.0)
+        step.maxpy(dp, self._dxdp)
+        x = eq.admissible(self._u0, step, FIRST_ORDER_HALVINGS) or self._u0.copy()
         try:
-            for k in range(1, substeps + 1):
-                eq.set_params(self.p0 + dp * k / substeps)
-                step.copy(dx)
-                if self._step_valid(x, dx, +1.0) < 1.0:
-                    return None
-                for _ in range(steps):
-                    eq._residual(None, x, r)
-                    if not np.isfinite(r.norm()):
-                        break
-                    pc.apply(r, dx)
-                    self._step_valid(x, dx, -1.0)
+            eq.relax(self.p0 + dp, x, iterations)
             return self.op.apply(x.array), dict(zip(self.landmark_names,
                                                     self.lm_op.apply(x.array)))
         finally:
-            eq.set_params(self.p0)
-            eq._set_state(eq.u_eq)
-            for v in (x, r, dx, step):
-                v.destroy()
+            x.destroy()
+            step.destroy()
 
-    def _step_valid(self, x, dx, sign: float, halvings: int = 10):
-        """x += sign·t·dx with the largest t in 1, 1/2, ... that inverts no element; returns
-        t (0 if none)."""
-        t = 1.0
-        for _ in range(halvings):
-            x.axpy(sign, dx)
-            self.eq._set_state(x)
-            if self.eq.min_det_F() > 0:
-                return t
-            x.axpy(-sign, dx)
-            dx.scale(0.5)
-            t *= 0.5
-        self.eq._set_state(x)
-        return 0.0
+    def destroy(self):
+        for v in (self._u0, *self._dxdp):
+            v.destroy()
 
 
 def fit_surface(scene, predictor: SkinPredictor, surface, **options):

@@ -51,7 +51,7 @@ class Scene:
         self.treatment = treatment.subset(params_used) if params_used else treatment
         t0 = time.perf_counter()
         self.eq = Equilibrium(self.domain, self.treatment.matrix(self.domain),
-                              [self.domain.segments[s] for s in self.treatment.segments],
+                              [self.domain.segments[s] for s in self.treatment.active_segments],
                               material=material, penalty=penalty, solver=solver,
                               options=options, **(newton or {}))
         self.timings["compile"] = time.perf_counter() - t0

@@ -1,7 +1,8 @@
 """Treatment model: goals of the active bone vertices ``x̂_A(p) = X_A + Σ p_i B_i`` (paper eq. 1).
 
 Built-in parameters are linearised rigid motions of each active segment about its pivot, in
-physical units. For segment ``s`` (``mandible``, ``maxilla_L``, ``maxilla_R``):
+physical units. For segment ``s`` (``mandible``, ``maxilla_L``, ``maxilla_R``, and the group
+``maxilla``: both LeFort I halves as one piece, about the mean of their pivots):
 
 ================  =====  ==========================================  ================
 name              unit   blendshape B at a segment vertex X           default bounds
@@ -35,10 +36,16 @@ MOTIONS = {  # name: (kind, axis, unit, bounds)
     "yaw_deg": ("rotation", (0, 0, 1), "deg", (-10.0, 10.0)),
 }
 
-#: Parameters planned by default: the mandible's six motions, the maxilla halves' advance and
-#: vertical position (their rotations are poorly determined by skin landmarks).
+#: Segment groups that also move as one piece: the LeFort I maxilla (both halves); a member's
+#: own motions are then relative to the group's.
+GROUPS = {"maxilla": ("maxilla_L", "maxilla_R")}
+#: Parameters planned by default: the mandible's six motions and the maxilla's advance,
+#: vertical position, pitch and cant (roll), en bloc. The halves' relative motion (a split of
+#: the palate) is left out: skin landmarks barely decide it, and stepping the halves apart
+#: vertically shears the tissue over the midline cut (a 7 mm step: 32 factorisations where
+#: the same motion en bloc takes 2, medium, BENCHMARKS.md).
 PLAN_PARAMS = [f"mandible.{m}" for m in MOTIONS] + [
-    f"maxilla_{s}.{m}" for s in "LR" for m in ("advance_mm", "vertical_mm")]
+    f"maxilla.{m}" for m in ("advance_mm", "vertical_mm", "pitch_deg", "roll_deg")]
 #: Default Tikhonov weight α (mm² per unit²) and relative-decrease stop of a plan, shared by
 #: `Scene.plan` and ``scripts/plan.py``: with α = 0 the motions the landmarks do not decide
 #: drift to their bounds (the coarse class3-asym plan then crushes tissue).
@@ -100,8 +107,13 @@ class Treatment:
 
     @property
     def segments(self) -> list[str]:
-        """Segments moved by at least one parameter, in order of first use."""
+        """Segments (or groups) moved by at least one parameter, in order of first use."""
         return list(dict.fromkeys(p.segment for p in self.params))
+
+    @property
+    def active_segments(self) -> list[str]:
+        """The mesh segments these parameters move (groups expanded to their members)."""
+        return list(dict.fromkeys(m for s in self.segments for m in GROUPS.get(s, (s,))))
 
     def subset(self, names) -> "Treatment":
         """A treatment with only the named parameters, in the given order."""
@@ -130,13 +142,16 @@ class Treatment:
         n = len(domain.X)
         B = np.zeros((n, 3, len(self.params)))
         for name in self.segments:
-            if name not in domain.segments:
-                raise InputError(f"segment {name!r} is not in the mesh "
+            members = GROUPS.get(name, (name,))
+            missing = [m for m in members if m not in domain.segments]
+            if missing:
+                raise InputError(f"segment(s) {missing} of {name!r} not in the mesh "
                                  f"(segments: {list(domain.segments)})")
-            blocks = domain.facet_blocks([domain.segments[name]])
+            blocks = domain.facet_blocks([domain.segments[m] for m in members])
+            pivot = np.mean([domain.pivots[m] for m in members], axis=0)
             for i, p in enumerate(self.params):
                 if p.segment == name:
-                    B[blocks, :, i] = p.values(domain.X[blocks], np.asarray(domain.pivots[name]))
+                    B[blocks, :, i] = p.values(domain.X[blocks], pivot)
         return B.reshape(n * 3, -1)
 
 
@@ -156,7 +171,10 @@ def _number_in(value, param: "Param") -> float:
 
 
 def rigid_treatment(segments=("mandible", "maxilla_L", "maxilla_R"), motions=None) -> Treatment:
-    """Built-in linearised rigid motions: for each segment, the named motions (all six)."""
+    """Built-in linearised rigid motions: for each segment, and each group of `GROUPS` whose
+    members are all among them, the named motions (all six)."""
+    segments = list(segments) + [g for g, members in GROUPS.items()
+                                 if g not in segments and set(members) <= set(segments)]
     motions = list(MOTIONS) if motions is None else list(motions)
     bad = [m for m in motions if m not in MOTIONS]
     if bad:

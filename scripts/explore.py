@@ -8,9 +8,9 @@
 At p0 (``--params``/``--p``) it computes S_skin = dx_skin/dp (Np solves with the kept
 factorisation) and saves ``skin_sensitivity.npz`` (rest and current skin vertices, triangles,
 S (N, 3, Np), names, p0) and ``sensitivity.xdmf`` (dx/dp_i on the volume, for ParaView).
-For each ``scale·dp`` it times the plain prediction ``x(p0) + S dp`` and the chord-corrected
-one; with ``--compare`` it also solves the true equilibrium and reports max/mean skin error
-(mm) and the displacement at Pg.
+For each ``scale·dp`` it times the plain prediction ``x(p0) + S dp`` and the corrected one
+(a few quasi-Newton steps on the kept factorisation); with ``--compare`` it also solves the
+true equilibrium and reports max/mean skin error (mm) and the displacement at Pg.
 """
 
 from __future__ import annotations
@@ -34,8 +34,9 @@ def main(argv=None):
     ap.add_argument("--dp", nargs="*", default=[], metavar="NAME=VALUE",
                     help="a change of the treatment to predict")
     ap.add_argument("--scales", default="1", help="comma-separated multiples of dp")
-    ap.add_argument("--steps", type=int, default=2, help="chord-Newton steps per substep")
-    ap.add_argument("--substeps", type=int, default=8, help="continuation parts of dp")
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="quasi-Newton steps of the corrected prediction (default "
+                         "inverse.explore.CORRECTION_ITERATIONS)")
     ap.add_argument("--compare", action="store_true", help="solve the true equilibria")
     ap.add_argument("--out", help="folder for skin_sensitivity.npz and sensitivity.xdmf")
     ap.add_argument("--report", help="JSON report path")
@@ -43,7 +44,7 @@ def main(argv=None):
     import numpy as np
 
     from fem.io import write_json
-    from inverse.explore import SkinPredictor
+    from inverse.explore import CORRECTION_ITERATIONS, SkinPredictor
     from meshes.errors import InputError
 
     t0 = time.perf_counter()
@@ -72,7 +73,7 @@ def main(argv=None):
             plain = pred.predict(d)
         t_plain = (time.perf_counter() - t) / n_calls
         t = time.perf_counter()
-        corr, corr_lm = pred.corrected(d, args.steps, args.substeps)
+        corr, corr_lm = pred.corrected(d, args.iterations or CORRECTION_ITERATIONS)
         t_corr = time.perf_counter() - t
         row = {"scale": s, "dp": d, "predict_ms": 1e3 * t_plain, "corrected_s": t_corr,
                "Pg_displacement_predicted": pred.predict_landmarks(d)["Pg"] - pg0,

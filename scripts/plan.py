@@ -6,8 +6,8 @@
         --out out/plan --report out/plan/report.json
 
 Targets default to the case's clinical goal (`inverse.targets`). Parameters default to
-`inverse.treatment.PLAN_PARAMS` (mandible: all six motions; maxilla halves: advance and
-vertical). The report has the keys listed in README.md.
+`inverse.treatment.PLAN_PARAMS` (mandible: all six motions; maxilla en bloc: advance,
+vertical, pitch and cant). The report has the keys listed in README.md.
 """
 
 from __future__ import annotations

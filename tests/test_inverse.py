@@ -212,12 +212,12 @@ def test_fit_surface_recovers_the_treatment_of_a_predicted_face(scene):
     pred = SkinPredictor(scene)
     dp = np.array([0.5, 0.0, -0.3, 0.0, 0.4, 0.0])
     surface = pred.predict(dp)
-    skin, lm = pred.corrected(dp, steps=2)
+    skin, lm = pred.corrected(dp)
     scene.solve(P0 + dp)
     true = pred.op.apply(scene.eq.u_eq.array)
     err_plain = np.linalg.norm(surface - true, axis=1)
     err_corr = np.linalg.norm(skin - true, axis=1)
-    assert err_corr.max() < 0.5 * err_plain.max()      # the chord steps help
+    assert err_corr.max() < 0.5 * err_plain.max()      # the quasi-Newton steps help
     assert np.allclose(lm["Pg"], scene.landmarks(["Pg"])["Pg"], atol=0.01)
     scene.solve(P0)
     res = fit_surface(scene, pred, true, ftol=1e-12)

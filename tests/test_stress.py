@@ -61,14 +61,15 @@ def test_large_advance_reaches_equilibrium(mandible_scene):
 
 
 def test_unreachable_setback_reports_the_largest_step(mandible_scene):
-    """A 25 mm set-back crushes the submandibular tissue: continuation stops with a clear
-    error naming the largest reachable step, and the scene is left there, sound (its bone
-    within GOAL_FAILURE_MM of the goal)."""
+    """A 50 mm set-back drives the bone through the submandibular tissue: continuation stops
+    with a clear error naming the largest reachable step, and the scene is left there, sound
+    (its bone within GOAL_FAILURE_MM of the goal). (Since the sagittal split is free bone,
+    25 mm is reachable on this mesh.)"""
     mandible_scene.solve(np.zeros(6))
     with pytest.raises(SolverError, match="largest step reached is p") as err:
-        mandible_scene.solve({"mandible.advance_mm": -25.0})
+        mandible_scene.solve({"mandible.advance_mm": -50.0})
     reached = mandible_scene.params[0]
-    assert -25.0 < reached < -5.0
+    assert -50.0 < reached < -5.0
     assert mandible_scene.active_goal_error() < GOAL_FAILURE_MM
     assert str(round(reached, 4)) in str(err.value)
     assert mandible_scene.eq.min_det_F() > 0
@@ -95,16 +96,22 @@ def test_resisted_goal_is_reported(mandible_only, tiny_anatomy, caplog):
     scene.eq.destroy()
 
 
-def test_crushing_rotation_is_not_an_equilibrium(mandible_scene):
-    """A 15° yaw about the ramus pivot crushes tissue: a state whose bone misses its goal
-    by more than GOAL_FAILURE_MM is a failed solve; continuation reports the largest yaw
-    reached, and the scene is sound there."""
+def test_crushing_rotation_is_not_an_equilibrium(mandible_scene, monkeypatch):
+    """A converged state whose bone misses its goal by more than GOAL_FAILURE_MM is crushed
+    tissue, not the treatment's equilibrium: a failed solve; continuation reports the largest
+    yaw reached, and the scene is sound there. The threshold is lowered to 4 µm so that a
+    30° yaw (bone 6 µm from its goal on this mesh; 20°: 2 µm) counts as crushed: on the
+    anatomy with a free sagittal split, no fast move on the tiny mesh crushes 1 mm."""
+    import fem.equilibrium
+
     mandible_scene.solve(np.zeros(6))
+    monkeypatch.setattr(fem.equilibrium, "GOAL_FAILURE_MM", 0.004)
     with pytest.raises(SolverError, match="largest step reached is p"):
-        mandible_scene.solve({"mandible.yaw_deg": 15.0})
-    assert 5.0 < mandible_scene.params[5] < 15.0
-    assert mandible_scene.active_goal_error() < GOAL_FAILURE_MM
+        mandible_scene.solve({"mandible.yaw_deg": 30.0})
+    assert 5.0 < mandible_scene.params[5] < 30.0
+    assert mandible_scene.active_goal_error() < 0.004
     assert mandible_scene.eq.min_det_F() > 0
+    monkeypatch.undo()
     mandible_scene.solve(np.zeros(6))
 
 
