@@ -535,6 +535,8 @@ class Equilibrium:
         t0 = time.perf_counter()
         start = self.first_order(p) if predict else None
         if quick and start is None and predict and self._can_predict(p):
+            self.set_params(self.p)   # the scene stays at its equilibrium
+            self._set_state(self.u_eq)
             raise SolverError(f"the first-order prediction at p = {np.round(p, 4).tolist()} "
                               "inverts an element: no quick solve is tried")
         p_done, p_start = self.p.copy(), self.p.copy()

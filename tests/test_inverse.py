@@ -213,6 +213,7 @@ def test_fit_surface_recovers_the_treatment_of_a_predicted_face(scene):
     dp = np.array([0.5, 0.0, -0.3, 0.0, 0.4, 0.0])
     surface = pred.predict(dp)
     skin, lm = pred.corrected(dp)
+    assert np.array_equal(scene.eq.p, P0) and scene.eq._stats.factorisations == 0  # relax
     scene.solve(P0 + dp)
     true = pred.op.apply(scene.eq.u_eq.array)
     err_plain = np.linalg.norm(surface - true, axis=1)

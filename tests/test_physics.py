@@ -158,6 +158,44 @@ def test_first_order_prediction_warm_start_saves_newton_steps(mandible_scene):
     scene.solve(np.zeros(6))
 
 
+def test_stalled_quasi_newton_refactorises_where_it_is(mandible_only, tiny_anatomy,
+                                                      tight_scene, monkeypatch):
+    """Where L-BFGS stalls it refactorises K at the current iterate and goes on from there
+    (no restart from the start, no Newton): with the stall test made strict (the residual
+    must fall 1000x every 5 iterations) a 10 mm advance refreshes and still lands within
+    1e-3 mm of a 1e-10 mm Newton solve."""
+    import fem.equilibrium
+
+    monkeypatch.setattr(fem.equilibrium, "STALL_RATIO", 1e-3)
+    scene = mandible_only(tiny_anatomy)
+    p = scene.param_vector({"mandible.advance_mm": 10.0})
+    st = scene.solve(p)
+    assert 2 <= st.factorisations <= 1 + fem.equilibrium.QN_REFRESHES, st
+    tight_scene.solve(p)
+    a, b = scene.landmarks(), tight_scene.landmarks()
+    assert max(np.abs(a[k] - b[k]).max() for k in a) < 1e-3
+    scene.eq.destroy()
+
+
+def test_quick_solve_skips_a_trial_whose_prediction_inverts(mandible_scene):
+    """A quick (line-search) solve whose first-order prediction inverts an element is not
+    tried: SolverError at once, no factorisation, the scene stays at its equilibrium."""
+    from meshes.errors import SolverError
+
+    eq = mandible_scene.eq
+    mandible_scene.solve(np.zeros(6))
+    eq.sensitivity()
+    p = mandible_scene.param_vector({"mandible.advance_mm": 20.0})
+    assert eq.first_order(p) is None          # this prediction inverts an element
+    with pytest.raises(SolverError, match="inverts an element"):
+        eq.solve(p, quick=True)
+    assert not np.any(eq.p) and eq._stats.factorisations == 0
+    assert eq.active_goal_error() < 0.05      # goal and state: still the equilibrium's
+    st = eq.solve(p)                           # the ordinary solve gets there
+    assert st.goal_error < 0.05
+    mandible_scene.solve(np.zeros(6))
+
+
 def test_quasi_newton_matches_newton_on_one_factorisation(mandible_only, tiny_anatomy,
                                                           tight_scene):
     """Quasi-Newton (the default) lands within 1e-3 mm of a 1e-10 mm Newton solve: from rest

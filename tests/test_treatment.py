@@ -43,3 +43,24 @@ def test_sculpted_surfaces_must_correspond(tiny_anatomy, tmp_path):
         sculpted_param("x", "mandible", rest, bad)
     with pytest.raises(InputError, match="cannot read"):
         sculpted_param("x", "mandible", rest, tmp_path / "missing.obj")
+
+
+def test_maxilla_group_moves_both_halves_about_their_mean_pivot(tiny_anatomy):
+    """``maxilla.*`` moves both LeFort I halves as one piece: a translation is the sum of the
+    halves' translations, a rotation turns both about the mean of their pivots."""
+    from fem.domain import create_domain
+
+    dom = create_domain(tiny_anatomy)
+    t = rigid_treatment()
+    assert "maxilla.roll_deg" in t.names and "maxilla_L.roll_deg" in t.names
+    B = t.matrix(dom).reshape(len(dom.X), 3, -1)
+    col = {n: B[:, :, i] for i, n in enumerate(t.names)}
+    np.testing.assert_array_equal(col["maxilla.advance_mm"],
+                                  col["maxilla_L.advance_mm"] + col["maxilla_R.advance_mm"])
+    halves = np.any(col["maxilla.advance_mm"] != 0, axis=1)
+    c = 0.5 * (np.asarray(dom.pivots["maxilla_L"]) + np.asarray(dom.pivots["maxilla_R"]))
+    expected = np.deg2rad(1.0) * np.cross([0.0, 1.0, 0.0], dom.X[halves] - c)
+    np.testing.assert_allclose(col["maxilla.roll_deg"][halves], expected, atol=1e-12)
+    assert not np.any(col["maxilla.roll_deg"][~halves])
+    sub = t.subset(["mandible.advance_mm", "maxilla.vertical_mm"])
+    assert sub.active_segments == ["mandible", "maxilla_L", "maxilla_R"]
