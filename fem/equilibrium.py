@@ -717,7 +717,8 @@ class Equilibrium:
 
     def _block_sensitivity(self):
         """dx/dp as one MatMatSolve with the factor of K at the equilibrium, or None (not a
-        Cholesky preset, or K is not positive definite there)."""
+        Cholesky preset, no block solve in its package, or K is not positive definite
+        there)."""
         pc = self.ksp.getPC()
         if pc.getType() != "cholesky" or self.n_params == 0:
             return None
@@ -731,15 +732,18 @@ class Equilibrium:
         rhs.getDenseArray()[:] = -np.stack([g.array_r for g in self.dfdp], axis=1)
         rhs.assemble()
         sol = rhs.duplicate()
-        pc.getFactorMatrix().matSolve(rhs, sol)
-        cols = sol.getDenseArray()
         out = []
-        for i in range(self.n_params):
-            v = self.u_eq.duplicate()
-            v.array[:] = cols[:, i]
-            out.append(v)
-        for m in (rhs, sol):
-            m.destroy()
+        try:
+            pc.getFactorMatrix().matSolve(rhs, sol)
+            cols = sol.getDenseArray()
+            for i in range(self.n_params):
+                out.append(self.u_eq.duplicate())
+                out[-1].array[:] = cols[:, i]
+        except PETSc.Error:   # a factorisation package without block solves
+            out = None
+        finally:
+            for m in (rhs, sol):
+                m.destroy()
         return out
 
     @property
@@ -769,9 +773,9 @@ class Equilibrium:
         """p differs from the equilibrium's and a factorisation (or dx/dp) is at hand."""
         return bool(np.any(p != self.p) and (self._pc_ready or self.has_sensitivity))
 
-    def first_order(self, p, halvings: int = 0):
-        """The first-order state x(p0) + dx/dp (p - p0) as in `admissible`; None when there
-        is no factorisation yet or no change. Collective."""
+    def first_order(self, p):
+        """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None
+        when it inverts an element, there is no factorisation yet, or p is p0. Collective."""
         if not self._can_predict(p):
             return None
         try:
@@ -779,30 +783,30 @@ class Equilibrium:
         except SolverError:
             return None
         try:
-            return self.admissible(self.u_eq, step, halvings)
+            return self.admissible(self.u_eq, step)
         finally:
             step.destroy()
 
-    def admissible(self, x0: PETSc.Vec, step: PETSc.Vec, halvings: int = 0):
-        """x0 + t step (a new PETSc vector, mm) with the largest t in 1, 1/2, ...
-        (``halvings`` times) that inverts no element, or None. Leaves the state u there.
-        Collective."""
-        x = x0.duplicate()
-        for k in range(halvings + 1):
-            x0.copy(x)
-            x.axpy(0.5 ** k, step)
-            self._set_state(x)
-            if self.min_det_F() > 0:
-                return x
-        x.destroy()
-        return None
+    def admissible(self, x0: PETSc.Vec, step: PETSc.Vec):
+        """x0 + step (a new PETSc vector, mm), or None where it inverts an element. The
+        state u is left at the equilibrium. Collective."""
+        x = x0.copy()
+        x.axpy(1.0, step)
+        self._set_state(x)
+        if not self.min_det_F() > 0:
+            x.destroy()
+            x = None
+        self._set_state(self.u_eq)
+        return x
 
     def relax(self, p, x: PETSc.Vec, iterations: int) -> SolveStats:
         """At most ``iterations`` quasi-Newton (L-BFGS) steps towards the equilibrium at p
         (Np,) from x (updated in place, mm), on the kept factorisation: nothing is assembled
         or factorised; each step is one residual, one triangular solve pair and its energy
         line search (so x never inverts an element). Stops early where L-BFGS stalls
-        (`STALL_RATIO`). For cheap corrections of a prediction; the scene's equilibrium
+        (`STALL_RATIO`); steps that end with a larger residual norm than x had are
+        undone (far from where K was factorised they can lower the energy while leaving
+        the equilibrium). For cheap corrections of a prediction; the scene's equilibrium
         (p, u) is unchanged. x must not invert an element. Collective."""
         p = self.set_params(p)
         self._stats = SolveStats()
@@ -821,8 +825,8 @@ class Equilibrium:
             self._set_state(x)
             finite = self.domain.comm.allreduce(bool(np.all(np.isfinite(x.array))),
                                                 op=MPI.LAND)
-            if not (finite and self.min_det_F() > 0):
-                x0.copy(x)   # not expected: the energy line search rejects inversion
+            if not (finite and self.min_det_F() > 0) or self._fnorms[-1] > self._fnorms[0]:
+                x0.copy(x)   # steps that end with a larger residual than x had: keep x
         finally:
             x0.destroy()
             self.set_params(self.p)

@@ -11,6 +11,8 @@ refactorisation.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from fem.equilibrium import Equilibrium
@@ -18,8 +20,8 @@ from inverse.objective import Objective, point_sensitivity
 
 #: Quasi-Newton steps of a corrected prediction (BENCHMARKS.md: error and time against it).
 CORRECTION_ITERATIONS = 6
-#: A first-order state that inverts an element is halved up to this many times.
-FIRST_ORDER_HALVINGS = 6
+
+log = logging.getLogger(__name__)
 
 
 class SkinPredictor:
@@ -59,23 +61,29 @@ class SkinPredictor:
         return dict(zip(self.landmark_names, pts))
 
     def corrected(self, dp, iterations: int = CORRECTION_ITERATIONS):
-        """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp: the first-order state
-        (shortened while it would invert an element), then at most ``iterations``
-        quasi-Newton steps on K's kept factorisation (`Equilibrium.relax`). No assembly of
-        K, no refactorisation; the scene's equilibrium is unchanged. Collective."""
+        """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp: the first-order state, then
+        at most ``iterations`` quasi-Newton steps on K's kept factorisation
+        (`Equilibrium.relax`). No assembly of K, no refactorisation; the scene's equilibrium
+        is unchanged. Where the first-order state inverts an element, the steps would start
+        from a shortened state far from the equilibrium (on coarse they then erred 2x more
+        than the plain prediction): the plain prediction is returned. Collective."""
         eq: Equilibrium = self.eq
         dp = np.asarray(dp, dtype=float)
         step = self._u0.duplicate()
         step.set(0.0)
         step.maxpy(dp, self._dxdp)
-        x = eq.admissible(self._u0, step, FIRST_ORDER_HALVINGS) or self._u0.copy()
+        x = eq.admissible(self._u0, step)
+        step.destroy()
+        if x is None:
+            log.info("the first-order state at dp = %s inverts an element: plain prediction",
+                     np.round(dp, 3).tolist())
+            return self.predict(dp), self.predict_landmarks(dp)
         try:
             eq.relax(self.p0 + dp, x, iterations)
             return self.op.apply(x.array), dict(zip(self.landmark_names,
                                                     self.lm_op.apply(x.array)))
         finally:
             x.destroy()
-            step.destroy()
 
     def destroy(self):
         for v in (self._u0, *self._dxdp):
