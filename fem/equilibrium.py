@@ -67,6 +67,8 @@ QN_MIN_XTOL = 1e-4
 #: STALL_ITS iterations (healthy: ~10x per 10); then K is refactorised at the current iterate
 #: and L-BFGS restarts from there, up to QN_REFRESHES times, before Newton takes over.
 STALL_ITS, STALL_RATIO, QN_REFRESHES = 5, 0.5, 3
+#: Refreshes allowed in a quick solve (a line-search trial that can be shortened instead).
+QUICK_REFRESHES = 1
 #: A tangent (adjoint, sensitivity) solve that needs more CG iterations than this with the
 #: kept factorisation has the next one refactorise at the equilibrium.
 TANGENT_LAG_ITS = 5
@@ -541,7 +543,6 @@ class Equilibrium:
                               "inverts an element: no quick solve is tried")
         p_done, p_start = self.p.copy(), self.p.copy()
         u_good = self.u_eq.copy()   # self.u may have been changed by the caller
-        self._invalidate()
         self._set_state(start or u_good)
         if start is not None:
             start.destroy()
@@ -555,10 +556,7 @@ class Equilibrium:
                 self._set_state(u_good)
                 depth += 1
                 if depth > max_bisections:   # keep the largest step reached
-                    solved_xtol = self.solved_xtol
-                    self._commit(p_done, t0)
-                    if np.array_equal(p_done, p_start):   # no step made: its old accuracy
-                        self.solved_xtol = solved_xtol
+                    self._commit(p_done, t0, moved=not np.array_equal(p_done, p_start))
                     u_good.destroy()
                     raise SolverError(
                         f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
@@ -574,14 +572,17 @@ class Equilibrium:
         u_good.destroy()
         return self._commit(p_done, t0)
 
-    def _commit(self, p, t0) -> SolveStats:
+    def _commit(self, p, t0, moved: bool = True) -> SolveStats:
         """Make the current state u the equilibrium at p; finish the stats; report a goal
-        the tissue did not let the bone reach."""
+        the tissue did not let the bone reach. ``moved=False`` (a failed solve that made no
+        step): the equilibrium, its accuracy, K and dx/dp there are kept."""
         self.set_params(p)
         self.p = p.copy()
-        self.solved_xtol = self.xtol
         self._uvec.copy(self.u_eq)
-        self._pc_at_eq = False
+        if moved:
+            self.solved_xtol = self.xtol
+            self._invalidate()
+            self._pc_at_eq = False
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
         if st.goal_error > GOAL_TOLERANCE_MM and self.domain.comm.rank == 0:
@@ -638,7 +639,8 @@ class Equilibrium:
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
             self._refactor = True
-            if snes is not self._newton_snes and self._stalled and refreshes < QN_REFRESHES:
+            if snes is not self._newton_snes and self._stalled and \
+                    refreshes < (QUICK_REFRESHES if quick else QN_REFRESHES):
                 refreshes += 1   # K at the current iterate, fresh L-BFGS pairs, go on
                 log.info("qn stalled after %d iterations: refactorising there", self._last_its)
                 snes = self._method_snes()

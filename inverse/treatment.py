@@ -40,12 +40,15 @@ MOTIONS = {  # name: (kind, axis, unit, bounds)
 #: own motions are then relative to the group's.
 GROUPS = {"maxilla": ("maxilla_L", "maxilla_R")}
 #: Parameters planned by default: the mandible's six motions and the maxilla's advance,
-#: vertical position, pitch and cant (roll), en bloc. The halves' relative motion (a split of
-#: the palate) is left out: skin landmarks barely decide it, and stepping the halves apart
-#: vertically shears the tissue over the midline cut (a 7 mm step: 32 factorisations where
-#: the same motion en bloc takes 2, medium, BENCHMARKS.md).
+#: vertical position, cant (roll) and midline (yaw), en bloc. The halves' relative motion (a
+#: split of the palate) is left out: skin landmarks barely decide it, and stepping the halves
+#: apart vertically shears the tissue over the midline cut (a 7 mm step: 32 factorisations
+#: where the same motion en bloc takes 2, medium). So is the maxilla's pitch: with it the
+#: coarse default plan tilted the incisors 9° down into the lower lip (det F 0.09, bone
+#: 0.4 mm short of its goal; there is no occlusion constraint) to gain 0.04 mm of landmark
+#: distance (BENCHMARKS.md).
 PLAN_PARAMS = [f"mandible.{m}" for m in MOTIONS] + [
-    f"maxilla.{m}" for m in ("advance_mm", "vertical_mm", "pitch_deg", "roll_deg")]
+    f"maxilla.{m}" for m in ("advance_mm", "vertical_mm", "roll_deg", "yaw_deg")]
 #: Default Tikhonov weight α (mm² per unit²) and relative-decrease stop of a plan, shared by
 #: `Scene.plan` and ``scripts/plan.py``: with α = 0 the motions the landmarks do not decide
 #: drift to their bounds (the coarse class3-asym plan then crushes tissue).

@@ -7,7 +7,7 @@
 
 Targets default to the case's clinical goal (`inverse.targets`). Parameters default to
 `inverse.treatment.PLAN_PARAMS` (mandible: all six motions; maxilla en bloc: advance,
-vertical, pitch and cant). The report has the keys listed in README.md.
+vertical, cant and yaw). The report has the keys listed in README.md.
 """
 
 from __future__ import annotations

@@ -196,6 +196,29 @@ def test_quick_solve_skips_a_trial_whose_prediction_inverts(mandible_scene):
     mandible_scene.solve(np.zeros(6))
 
 
+def test_failed_solve_without_a_step_keeps_the_linearisation(mandible_scene, monkeypatch):
+    """A solve that fails before making any step leaves the equilibrium as it was, and with
+    it the cached dx/dp and the accuracy it was solved to: a shortened line-search trial
+    then starts from its first-order prediction at no cost."""
+    from meshes.errors import SolverError
+
+    eq = mandible_scene.eq
+    mandible_scene.solve({"mandible.advance_mm": 2.0})
+    eq.sensitivity()
+    p0, xtol0 = eq.p.copy(), eq.solved_xtol
+
+    def fail(*args, **kwargs):
+        raise SolverError("simulated failure")
+
+    monkeypatch.setattr(eq, "_newton", fail)
+    with pytest.raises(SolverError, match="largest step reached"):
+        eq.solve(p0 + np.r_[1.0, np.zeros(5)], quick=True)
+    monkeypatch.undo()
+    assert np.array_equal(eq.p, p0) and eq.solved_xtol == xtol0
+    assert eq.has_sensitivity and eq.active_goal_error() < 0.05
+    mandible_scene.solve(np.zeros(6))
+
+
 def test_quasi_newton_matches_newton_on_one_factorisation(mandible_only, tiny_anatomy,
                                                           tight_scene):
     """Quasi-Newton (the default) lands within 1e-3 mm of a 1e-10 mm Newton solve: from rest
