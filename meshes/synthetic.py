@@ -17,8 +17,10 @@ directly borders fixed bone makes the Jacobian indefinite (DESIGN.md, measured).
 cut the free bone reaches ``SPLIT_MM`` back: the sagittal split's overlap, where the buccal plate
 of the proximal segment and the distal segment slide along each other. With only ``BAND_MM / 2``
 there, a 6 mm setback crushed the tissue over the split (det F 0.09, 26 factorisations on
-coarse; 10 mm failed); with 15 mm, det F 0.59 and 2 factorisations (BENCHMARKS.md). Cases differ
-in the position and yaw of the mandible (and a little of the maxilla).
+coarse; 10 mm failed); with 15 mm, det F 0.59 and 2 factorisations (BENCHMARKS.md). Like the
+cut bands, the zone spans every height, so it also frees bone above the occlusal plane behind
+the cut (upper ramus and cheek: ~2100 mm² on coarse); confining it to the ramus is open.
+Cases differ in the position and yaw of the mandible (and a little of the maxilla).
 """
 
 from __future__ import annotations
