@@ -326,9 +326,12 @@ class Equilibrium:
         one on the shared KSP each time (a few ms)."""
         if self.method == "newton" or self.xtol < QN_MIN_XTOL:
             return self._newton_snes
+        return self._fresh_qn_snes(self.max_it)
+
+    def _fresh_qn_snes(self, max_it: int):
+        """A new quasi-Newton SNES on the shared KSP (the previous one destroyed)."""
         self._drop_qn_snes()
-        self._qn_snes = self._build_snes({**METHODS[self.method], **self._search},
-                                         self.max_it, self.ksp)
+        self._qn_snes = self._build_snes({**METHODS["qn"], **self._search}, max_it, self.ksp)
         return self._qn_snes
 
     def _make_tangent_ksp(self, prefix: str):
@@ -816,9 +819,7 @@ class Equilibrium:
         if not self._pc_ready:   # no factorisation yet: one at the equilibrium
             self._factorise_at_equilibrium()
         self._f_ref = None   # residual tolerance relative to the start's residual
-        self._drop_qn_snes()
-        snes = self._qn_snes = self._build_snes({**METHODS["qn"], **self._search},
-                                                iterations, self.ksp)
+        snes = self._fresh_qn_snes(iterations)
         snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factorisation
         x0 = x.copy()
         try:
