@@ -54,7 +54,7 @@ PRESETS = {
 #: ``newton``: Newton with a factorisation every step (quadratic convergence).
 METHODS = {
     "qn": {"snes_type": "qn", "snes_qn_type": "lbfgs", "snes_qn_scale_type": "jacobian",
-           "snes_qn_m": 10, "snes_qn_restart_type": "none"},
+           "snes_qn_m": 10, "snes_qn_restart_type": "none", "snes_linesearch_type": "basic"},
     "newton": {"snes_type": "newtonls"},
 }
 #: Per-method defaults of xtol (mm), max_it and lag_its (see `Equilibrium`).
@@ -67,6 +67,13 @@ QN_MIN_XTOL = 1e-4
 #: STALL_ITS iterations (healthy: ~10x per 10); then K is refactorised at the current iterate
 #: and L-BFGS restarts from there, up to QN_REFRESHES times, before Newton takes over.
 STALL_ITS, STALL_RATIO, QN_REFRESHES = 5, 0.5, 3
+#: Largest linear rate quasi-Newton's stopping test assumes (`Equilibrium._error_per_step`).
+RATE_MAX = 0.9
+#: Quasi-Newton's line search (`Equilibrium._critical_step`) halves a trial step that inverts
+#: an element at most this many times; then SNES takes the step and a NaN residual fails it.
+MAX_HALVINGS = 20
+#: MUMPS errors (INFOG(1)) of a too small workspace, and how often ICNTL(14) is doubled.
+MUMPS_WORKSPACE_ERRORS, MUMPS_WORKSPACE_RETRIES = {-8, -9, -11, -12, -14, -15, -17, -20}, 4
 #: Refreshes allowed in a quick solve (a line-search trial that can be shortened instead).
 QUICK_REFRESHES = 1
 #: A tangent (adjoint, sensitivity) solve that needs more CG iterations than this with the
@@ -217,6 +224,7 @@ class Equilibrium:
         self._refactor = False
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
         self._obj_val = None                 # its energy (None: not valid)
+        self._w, self._r = self._uvec.duplicate(), self.b.duplicate()   # line-search trial
         self._direction = np.inf             # inf-norm of the last search direction, mm
         self._fnorms, self._stalled = [], False   # residual norms of this SNES solve; stall
         self._last_its = 0                   # iterations of the last SNES solve
@@ -283,16 +291,20 @@ class Equilibrium:
         self._check_inertia = pc.getType() == "cholesky" and \
             pc.getFactorSolverType() == "mumps"
         if self._check_inertia:
-            # MUMPS reads its options at factorisation time, after they are removed: set them
-            pc.setFactorSetUpSolverType()
-            factor = pc.getFactorMatrix()
             opts = PETSc.Options()
-            for k, v in settings.items():
-                if k.startswith("mat_mumps_icntl_"):
-                    factor.setMumpsIcntl(int(k.rsplit("_", 1)[1]),
-                                         opts.getInt(prefix + k, int(v)))
+            self._icntl = {int(k.rsplit("_", 1)[1]): opts.getInt(prefix + k, int(v))
+                           for k, v in settings.items() if k.startswith("mat_mumps_icntl_")}
+            self._new_mumps_factor(pc)
         self.solver_name = solver
         return ksp
+
+    def _new_mumps_factor(self, pc):
+        """A new MUMPS factor in ``pc`` with our ICNTL settings (MUMPS reads them at
+        factorisation time, after the options database lost them: they are set here)."""
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        for k, v in self._icntl.items():
+            factor.setMumpsIcntl(k, v)
 
     def _build_snes(self, settings: dict, max_it: int, ksp=None):
         """A SNES with our callbacks and energy line search, configured from ``settings``
@@ -309,10 +321,11 @@ class Equilibrium:
         snes.setFunction(lambda s, x, b: self._residual(s, x, b), self.b)
         snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
         snes.setObjective(lambda s, x: self._objective(s, x))
-        snes.setLineSearchPreCheck(self._precheck)
         snes.setConvergenceTest(self._converged)
         snes.setTolerances(max_it=max_it)
         snes.setFromOptions()
+        snes.setLineSearchPreCheck(self._critical_step if snes.getType() == "qn"
+                                   else self._precheck)
         if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
             snes.setKSP(ksp)
         for k in mine:
@@ -331,7 +344,7 @@ class Equilibrium:
     def _fresh_qn_snes(self, max_it: int):
         """A new quasi-Newton SNES on the shared KSP (the previous one destroyed)."""
         self._drop_qn_snes()
-        self._qn_snes = self._build_snes({**METHODS["qn"], **self._search}, max_it, self.ksp)
+        self._qn_snes = self._build_snes({**self._search, **METHODS["qn"]}, max_it, self.ksp)
         return self._qn_snes
 
     def _make_tangent_ksp(self, prefix: str):
@@ -391,6 +404,49 @@ class Equilibrium:
         self._direction = y.norm(PETSc.NormType.INFINITY)
         return False
 
+    def _critical_step(self, x, y, *args):
+        """Quasi-Newton's line search, run as the pre-check of SNES's "basic" one, which then
+        takes the step x - y: y is scaled to the critical point of the energy along it, by
+        one secant step on s(λ) = F(x - λy)·y between λ = 0 and a trial λ = t, the full
+        step halved until it inverts no element; the secant root is taken up to 2t, where
+        it is checked too. On an energy with L-BFGS's full step this cut paper-size
+        iterations 24 -> 16 against a backtracking search (BENCHMARKS.md). One residual
+        per iteration besides SNES's own; a step that still inverts an element fails the
+        solve (a NaN residual), which falls back as any failure does."""
+        self._precheck(x, y)
+        s0 = self.b.dot(y)   # the SNES function vector holds F(x)
+        t = 1.0
+        for _ in range(MAX_HALVINGS):
+            s1 = self._slope(x, y, t)
+            if s1 is not None:
+                break
+            t /= 2
+        lam = t
+        if s1 is not None and s0 > 0 and s0 - s1 > 0:
+            lam = min(t * s0 / (s0 - s1), 2 * t)
+            if lam > t and self._slope(x, y, lam, residual=False) is None:
+                lam = t
+        y.scale(lam)
+        return True
+
+    def _slope(self, x, y, lam: float, residual: bool = True):
+        """F(x - λy)·y (mN·mm), or None where x - λy inverts an element (P1: the residual is
+        NaN; P2 is also checked at the vertices). ``residual=False``: only the check (0.0
+        when admissible). Collective."""
+        w = self._w
+        x.copy(w)
+        w.axpy(-lam, y)
+        if residual:
+            self._residual(None, w, self._r)
+            val = self._r.dot(y)
+        else:
+            self._set_state(w)
+            val = 0.0
+        ok = np.isfinite(val)   # the same on every rank (a global dot)
+        if ok and (self.domain.degree > 1 or not residual):
+            ok = self.min_det_F() > 0
+        return val if ok else None
+
     def _residual(self, snes, x, b):
         t = time.perf_counter()
         self._set_state(x)
@@ -441,7 +497,7 @@ class Equilibrium:
             self.ksp.setOperators(A)
             try:
                 pc.setUp()
-                n_neg = pc.getFactorMatrix().getInertia()[0] if self._check_inertia else 0
+                n_neg = self._inertia(pc, A) if self._check_inertia else 0
             except PETSc.Error:
                 n_neg = -1
             self._stats.factor += time.perf_counter() - t
@@ -457,6 +513,32 @@ class Equilibrium:
         self._step_shift = self._shift
         # let the shift decay once a step is accepted with a PD matrix
         self._shift = 0.0 if self._shift < 0.04 * self._diag_scale else self._shift / 4
+
+    def _inertia(self, pc, A) -> int:
+        """Negative pivots of MUMPS's LDLᵀ factor of A, or -1 when the factorisation failed.
+        PETSc 3.18 does not raise on a failed MUMPS factorisation: it leaves INFOG(1) < 0 and
+        skips every later numeric factorisation of that factor, so a failed one is replaced
+        by a new factor (a new analysis). Where the workspace was too small (delayed pivots
+        filled beyond the analysis's estimate; on 2 ranks this varies from run to run),
+        ICNTL(14) is doubled and A factorised again."""
+        for attempt in range(MUMPS_WORKSPACE_RETRIES + 1):
+            F = pc.getFactorMatrix()
+            err = F.getMumpsInfog(1)
+            if err >= 0:
+                return F.getInertia()[0]
+            workspace = err in MUMPS_WORKSPACE_ERRORS and attempt < MUMPS_WORKSPACE_RETRIES
+            if workspace:
+                self._icntl[14] = 2 * max(F.getMumpsIcntl(14), 10)
+            pc.reset()
+            self.ksp.setOperators(A)
+            self._new_mumps_factor(pc)
+            if not workspace:
+                break
+            log.info("MUMPS workspace too small (INFOG(1) = %d): factorising again with "
+                     "ICNTL(14) = %d %%", err, self._icntl[14])
+            pc.setUp()
+        log.warning("MUMPS factorisation failed (INFOG(1) = %d)", err)
+        return -1
 
     def _assemble_jacobian(self, M):
         """M = K at the current state u, Dirichlet rows/columns identity."""
@@ -489,8 +571,9 @@ class Equilibrium:
         self._x_prev.axpy(-1.0, x)
         step = self._x_prev.norm(PETSc.NormType.INFINITY)
         x.copy(self._x_prev)
-        if snes.getType() == "qn":   # a short step AND a short search direction
-            step, full = max(step, self._direction), True
+        if snes.getType() == "qn":   # a short step AND a short search direction, both
+            # scaled to the error they leave at quasi-Newton's observed linear rate
+            step, full = max(step, self._direction) * self._error_per_step(it), True
         else:   # a small step proves convergence only if it was a full Newton step (no shift)
             full = self._step_shift == 0
         if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
@@ -502,6 +585,16 @@ class Equilibrium:
         if it >= snes.getTolerances()[3]:
             return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
         return 0
+
+    def _error_per_step(self, it: int) -> float:
+        """max(1, ρ/(1-ρ)): at a linear rate ρ (the residual's over the last two iterations,
+        the first, load-solving one left out, capped at `RATE_MAX`) the error left after a
+        step of length s is about s ρ/(1-ρ). Slow rates (a factorisation far from here)
+        thus stop later; healthy ones (ρ ≤ 1/2) as the step alone says."""
+        if it < 3:
+            return 1.0
+        rate = min(np.sqrt(self._fnorms[it] / self._fnorms[it - 2]), RATE_MAX)
+        return max(1.0, rate / (1.0 - rate))
 
     # ------------------------------------------------------------------ solves
     def set_params(self, p) -> np.ndarray:
@@ -862,5 +955,5 @@ class Equilibrium:
         self._invalidate()
         self._drop_qn_snes()
         for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self._obj_x, self.u_eq, self.dfdg, *self.dfdp]:
+                    self._x, self._obj_x, self._w, self._r, self.u_eq, self.dfdg, *self.dfdp]:
             obj.destroy()
