@@ -8,8 +8,9 @@ The default method is quasi-Newton (SNESQN, L-BFGS) whose initial inverse Hessia
 factorisation of K: one factorisation serves many solves. Newton (SNES newtonls, a
 factorisation per step) takes over when it fails.
 
-Robustness: the line search minimises the energy, which is +inf where any tetrahedron has
-det F <= 0, so inverting trial steps are rejected and no NaN is ever formed; when a Newton
+Robustness: Newton's line search backtracks on the energy, which is +inf where any
+tetrahedron has det F <= 0; quasi-Newton's steps to the critical point along its direction,
+halving a trial that inverts an element (a NaN residual). No NaN is ever taken; when a Newton
 solve fails (indefinite K, KSP or line-search failure) a diagonal shift is added and raised;
 when that fails too, the step in p is bisected (continuation). `Equilibrium` keeps K and its
 factorisation/preconditioner (``self.ksp``) for adjoint and sensitivity solves.
@@ -307,7 +308,7 @@ class Equilibrium:
             factor.setMumpsIcntl(k, v)
 
     def _build_snes(self, settings: dict, max_it: int, ksp=None):
-        """A SNES with our callbacks and energy line search, configured from ``settings``
+        """A SNES with our callbacks and line search checks, configured from ``settings``
         (PETSc options under the prefix; the command line wins), which are removed from the
         global database afterwards. ``ksp``: share this KSP and its factorisation, as set
         up (its options are not read again)."""
@@ -900,11 +901,10 @@ class Equilibrium:
     def relax(self, p, x: PETSc.Vec, iterations: int) -> SolveStats:
         """At most ``iterations`` quasi-Newton (L-BFGS) steps towards the equilibrium at p
         (Np,) from x (updated in place, mm), on the kept factorisation: nothing is assembled
-        or factorised; each step is one residual, one triangular solve pair and its energy
-        line search (so x never inverts an element). Stops early where L-BFGS stalls
-        (`STALL_RATIO`); steps that end with a larger residual norm than x had are
-        undone (far from where K was factorised they can lower the energy while leaving
-        the equilibrium). For cheap corrections of a prediction; the scene's equilibrium
+        or factorised; each step is one triangular solve pair and two residuals (its
+        critical-point line search, `_critical_step`). Stops early where L-BFGS stalls
+        (`STALL_RATIO`); steps that end with a larger residual norm than x had, or with an
+        inverted element, are undone. For cheap corrections of a prediction; the scene's equilibrium
         (p, u) is unchanged. x must not invert an element. Collective."""
         p = self.set_params(p)
         self._stats = SolveStats()

@@ -3,7 +3,7 @@
 `SkinPredictor` holds ``x_skin(p0)`` and ``S_skin = dx_skin/dp`` (Np tangent solves with the
 kept factorisation). A prediction ``x(p0) + S dp`` is a small dense mat-vec, real time.
 `corrected` improves it with a few quasi-Newton (L-BFGS) steps on the same kept factorisation:
-each step is one residual, one pair of triangular solves and an energy line search, no
+each step is one pair of triangular solves and two residuals (its line search), no
 refactorisation.
 `fit_surface` is the Fig. 5c workflow: the parameters whose true equilibrium is closest to a
 (predicted or edited) skin surface.
