@@ -776,12 +776,15 @@ class Equilibrium:
         """out = K⁻¹ rhs, K = df/du at the current equilibrium (collective; Dirichlet rows
         are identity). CG preconditioned by the kept factorisation; it is rebuilt at the
         equilibrium when the previous tangent solve needed more than `TANGENT_LAG_ITS`
-        iterations with it (then it also serves the next solves as quasi-Newton's start), or
-        when CG fails. Returns the CG iteration count."""
+        iterations with it, when the last forward solve did (quasi-Newton from a
+        factorisation far from here: at medium size CG then took 63 iterations, 3x a
+        factorisation), or when CG fails; it then also serves the next solves as
+        quasi-Newton's start. Returns the CG iteration count."""
         self._assemble_K()
         ksp = self.tangent_ksp
+        far = not self._pc_at_eq and self._last_its > TANGENT_LAG_ITS
         for attempt in range(2):
-            if attempt or not self._pc_ready or self._stale_pc:
+            if attempt or not self._pc_ready or self._stale_pc or far:
                 self._factorise_at_equilibrium()
             ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
             ksp.solve(rhs, out)

@@ -64,9 +64,7 @@ class Scene:
         from meshes.synthetic import _check
 
         _check(case, resolution)  # same error on every rank before any collective call
-        t0 = time.perf_counter()
         scene = cls(lambda: synthetic_head(case, resolution), comm=comm, **kwargs)
-        scene.timings["mesh"] += time.perf_counter() - t0
         scene.case, scene.resolution = case, resolution
         return scene
 

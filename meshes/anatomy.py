@@ -130,9 +130,10 @@ class Anatomy:
         t = np.asarray(self.facet_tags, dtype=np.int32)
         if f.ndim != 2 or f.shape[1] != 3 or len(f) != len(t):
             raise MeshError(f"facets must be (F, 3) with one tag each; got {f.shape}, {t.shape}")
-        boundary = {tuple(r) for r in boundary_facets(self.cells)}
-        off = [i for i, r in enumerate(np.sort(f, axis=1)) if tuple(r) not in boundary]
-        if off:
+        n = len(self.points)
+        off = np.flatnonzero(~np.isin(_facet_keys(np.sort(f, axis=1), n),
+                                      _facet_keys(boundary_facets(self.cells), n)))
+        if len(off):
             raise MeshError(f"{len(off)} tagged facets are not on the mesh boundary, "
                             f"e.g. vertices {f[off[0]].tolist()}")
         need = {"skin": SKIN, "fixed bone (Dirichlet)": FIXED}
@@ -212,11 +213,26 @@ def tet_quality(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return 12.0 * (3.0 * np.abs(signed_volumes(points, cells))) ** (2.0 / 3.0) / l2
 
 
+#: Vertex indices up to this fit three to an int64 facet key (`_facet_keys`).
+MAX_VERTICES = 2 ** 21 - 1
+
+
+def _facet_keys(triples: np.ndarray, n: int) -> np.ndarray:
+    """One int64 (K,) per sorted vertex triple (K, 3) of a mesh with n vertices."""
+    if n > MAX_VERTICES:
+        raise MeshError(f"{n} vertices: at most {MAX_VERTICES} are supported")
+    t = np.asarray(triples, dtype=np.int64)
+    return (t[:, 0] * n + t[:, 1]) * n + t[:, 2]
+
+
 def boundary_facets(cells: np.ndarray) -> np.ndarray:
-    """Sorted vertex triples (B, 3) of facets that belong to exactly one tetrahedron."""
+    """Sorted vertex triples (B, 3) of facets that belong to exactly one tetrahedron, in
+    lexicographic order."""
     faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
-    uniq, count = np.unique(faces, axis=0, return_counts=True)
-    return uniq[count == 1]
+    n = int(cells.max()) + 1
+    uniq, count = np.unique(_facet_keys(faces, n), return_counts=True)
+    keys = uniq[count == 1]
+    return np.stack([keys // (n * n), keys // n % n, keys % n], axis=1)
 
 
 def intersect_rays(points: np.ndarray, tris: np.ndarray, origin, direction):
