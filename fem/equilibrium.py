@@ -692,7 +692,8 @@ class Equilibrium:
 
     def _newton(self, p, p_from, quick: bool = False):
         """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
-        quasi-Newton fails, Newton restarts from the same start; when Newton fails, the
+        quasi-Newton fails, Newton goes on from its iterate where that is sound (finite,
+        nothing inverted, bone not held back), else from the same start; when Newton fails, the
         diagonal shift is raised and it resumes. The residual tolerance is relative to the
         load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start; with no
         load (a refinement) only the step counts."""
@@ -744,12 +745,15 @@ class Equilibrium:
                 continue
             if snes is not self._newton_snes and quick:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
-            if snes is not self._newton_snes:   # Newton from where this solve started
-                log.info("%s: SNES reason %d after %d iterations%s: Newton takes over",
+            if snes is not self._newton_snes:   # Newton from quasi-Newton's iterate if sound
+                sound = not crushed and np.isfinite(self._fnorms[-1]) and self.min_det_F() > 0
+                log.info("%s: SNES reason %d after %d iterations%s: Newton takes over from %s",
                          snes.getType(), reason, self._last_its,
-                         " (tissue crushed)" if crushed else "")
+                         " (tissue crushed)" if crushed else "",
+                         "there" if sound else "the start")
                 snes = self._newton_snes
-                start.copy(self._x)
+                if not sound:
+                    start.copy(self._x)
                 continue
             if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
