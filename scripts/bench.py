@@ -4,6 +4,7 @@
     python3 scripts/bench.py forward [--resolutions tiny,coarse,medium,paper]
                                      [--solvers direct,gamg] [--ranks 1,2]
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
+    python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
@@ -59,7 +60,7 @@ def _machine() -> str:
 
 
 def _simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
-              args=None) -> dict:
+              args=None, timeout: float | None = None) -> dict:
     args = args or ["--case", "class3", "--resolution", res, "--solver", solver, "--p",
                     "mandible.advance_mm=5"]
     with tempfile.TemporaryDirectory() as d:
@@ -71,7 +72,10 @@ def _simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
             root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
             cmd = [launcher, *root, "-n", str(n), *cmd]
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-        r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        try:
+            r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"error": f"not solved within {timeout:g} s (stopped)"}
         if r.returncode != 0:
             return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
         return json.loads(rep.read_text())
@@ -133,6 +137,39 @@ def forward(args) -> None:
         f"GAMG is run up to `{args.iterative_up_to}`.", "",
         *_table(head, rows)]
     _write_section("forward", "\n".join(body))
+
+
+def stress(args) -> None:
+    """Large single moves from rest (class3-asym, `PLAN_PARAMS`): the mandible advanced by m
+    and shifted 0.3 m mm in one solve; each case a fresh ``simulate.py``, stopped after
+    ``--timeout`` s."""
+    head = ["resolution", "m mm", "its", "factorisations", "shifts", "continuation steps",
+            "min det F", "goal err mm", "equilibrium s"]
+    sys.path.insert(0, str(ROOT))
+    from inverse.treatment import PLAN_PARAMS
+
+    rows = []
+    for case in args.cases.split(","):
+        res, mag = case.split(":")
+        m = float(mag)
+        r = _simulate(res, "direct", 1, timeout=args.timeout, args=[
+            "--case", "class3-asym", "--resolution", res, "--params-used",
+            ",".join(PLAN_PARAMS), "--p", f"mandible.advance_mm={m:g}",
+            f"mandible.lateral_mm={0.3 * m:g}"])
+        if "error" in r:
+            rows.append([res, f"{m:g}", r["error"][:70]] + [""] * (len(head) - 3))
+        else:
+            rows.append([res, f"{m:g}", r["newton_iterations"], r["factorisations"],
+                         len(r["diagonal_shifts"]), r["continuation_steps"],
+                         f"{r['min_det_F']:.2f}", f"{r['active_goal_error_max_mm']:.3f}",
+                         f"**{r['timings_s']['solve']:.2f}**"])
+        print(rows[-1], flush=True)
+    body = _header("Stress: large single moves from rest (class3-asym, 1 rank)", args) + [
+        "The mandible advanced by m mm and shifted 0.3 m mm from rest in one solve "
+        "(`scripts/simulate.py`, `PLAN_PARAMS`, direct preset, quasi-Newton with Newton as "
+        f"fallback); a case still running after {args.timeout:g} s is stopped.", "",
+        *_table(head, rows)]
+    _write_section("stress", "\n".join(body))
 
 
 def _fd_gradient(scene, obj, h: float):
@@ -690,6 +727,10 @@ def main():
     pl.add_argument("--magnitudes", default="2,5",
                     help="mandible advances m (mm) of the exploration table; at paper size the "
                          "true equilibrium of m = 10 from rest took over 10 minutes (session 6)")
+    st = sub.add_parser("stress", help="large single moves from rest")
+    st.add_argument("--cases", default="coarse:10,coarse:14,coarse:20,medium:14,paper:10,paper:20",
+                    help="resolution:m pairs (m: mandible advance, mm)")
+    st.add_argument("--timeout", type=float, default=300.0, help="seconds per case")
     a = sub.add_parser("accuracy", help="run time against error (plots in docs/)")
     a.add_argument("--parts", default="mesh,tolerance,prediction,gradient,order")
     a.add_argument("--resolutions", default="tiny,coarse,medium,paper,fine",
@@ -703,7 +744,7 @@ def main():
     a.add_argument("--resolutions-p2", default="tiny,coarse,medium",
                    help="order part; the last P2 level is the reference")
     args = ap.parse_args()
-    {"forward": forward, "plan": plan, "accuracy": accuracy}[args.what](args)
+    {"forward": forward, "plan": plan, "stress": stress, "accuracy": accuracy}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -63,6 +63,7 @@ def main(argv=None):
         "linear_iterations": stats.linear_iterations, "converged": True,
         "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
         "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
+        "min_det_F": stats.min_det_F,
         "solver": scene.eq.solver_name, "timings_s": timings,
         "peak_rss_mb": peak_rss_mb(comm),
     }
