@@ -117,14 +117,15 @@ def test_crushing_rotation_is_not_an_equilibrium(mandible_scene, monkeypatch):
 
 @pytest.mark.parametrize("method, trial, advance", [("qn", "_slope", 15.0),
                                                     ("newton", "_objective", 25.0)])
-def test_line_search_rejects_inverting_trials(mandible_scene, monkeypatch, method, trial,
-                                              advance):
+def test_line_search_rejects_inverting_trials(mandible_only, tiny_anatomy, monkeypatch,
+                                              method, trial, advance):
     """From rest, the full first step of a large advance inverts elements. Quasi-Newton's
     critical-point search sees no slope there (None) and halves the trial (at 15 mm it then
-    converges on its one factorisation); Newton's energy backtracking sees +inf (at 25 mm,
-    which quasi-Newton hands to Newton). No NaN ever reaches the iterate."""
-    eq = mandible_scene.eq
-    mandible_scene.solve(np.zeros(6))
+    converges on its one factorisation); Newton's energy backtracking (``method="newton"``,
+    25 mm) sees +inf. No NaN ever reaches the iterate. A fresh scene: its
+    first factorisation is K at rest."""
+    scene = mandible_only(tiny_anatomy)
+    eq = scene.eq
     seen, original = [], getattr(eq, trial)
 
     def spy(*args, **kwargs):
@@ -134,17 +135,16 @@ def test_line_search_rejects_inverting_trials(mandible_scene, monkeypatch, metho
 
     monkeypatch.setattr(eq, trial, spy)
     monkeypatch.setattr(eq, "method", method)
-    st = eq.solve(mandible_scene.param_vector({"mandible.advance_mm": advance}),
-                  predict=False)
+    st = eq.solve(scene.param_vector({"mandible.advance_mm": advance}), predict=False)
     monkeypatch.undo()
     inverted = None if method == "qn" else np.inf
     assert inverted in seen, "no trial step inverted an element: the test lost its purpose"
     assert not any(v is not None and np.isnan(v) for v in seen)
     assert all(np.isfinite(st.residual_history))
     if method == "qn":
-        assert st.factorisations <= 1, st   # no refresh, no Newton (0: a kept one)
-    _assert_sound(mandible_scene, st)
-    mandible_scene.solve(np.zeros(6))
+        assert st.factorisations == 1, st   # no refresh, no Newton
+    _assert_sound(scene, st)
+    eq.destroy()
 
 
 def _with_slivers(anatomy, n=3, quality=5e-4):
@@ -238,12 +238,28 @@ def test_failed_mumps_factorisation_is_redone(mandible_only, tiny_anatomy, mandi
     scene.eq.destroy()
 
 
-def test_newton_takes_over_from_a_sound_quasi_newton_iterate(mandible_only, tiny_anatomy):
-    """A 25 mm advance from rest: L-BFGS stalls after its refreshes, and Newton goes on from
-    its iterate (sound: finite, nothing inverted, bone at its goal) instead of from the
-    start: 14 factorisations where restarting took 41, and the same sound equilibrium."""
+def test_newton_takes_over_from_a_sound_quasi_newton_iterate(mandible_only, tiny_anatomy,
+                                                            monkeypatch):
+    """A 25 mm advance from rest with Newton taking over at the first quasi-Newton failure
+    (no bisection first): L-BFGS stalls after its refreshes, and Newton goes on from its
+    iterate (sound: finite, nothing inverted, bone at its goal) instead of from the start:
+    14 factorisations where restarting took 41, and a sound equilibrium."""
+    import fem.equilibrium
+
+    monkeypatch.setattr(fem.equilibrium, "QN_BISECTIONS", 0)
     scene = mandible_only(tiny_anatomy)
     st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
-    assert st.factorisations <= 20, st
+    assert st.continuation_steps == 0 and st.factorisations <= 20, st
+    _assert_sound(scene, st)
+    scene.eq.destroy()
+
+
+def test_quasi_newton_failure_bisects_before_newton(mandible_only, tiny_anatomy):
+    """By default the same 25 mm advance meets quasi-Newton's failure by bisecting the step
+    (continuation on the cheap solver): 9 factorisations where Newton's takeover took 14
+    (at paper size a 20 mm advance: 73 s where Newton ran over 300 s)."""
+    scene = mandible_only(tiny_anatomy)
+    st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
+    assert st.continuation_steps >= 1 and st.factorisations < 14, st
     _assert_sound(scene, st)
     scene.eq.destroy()
