@@ -10,10 +10,12 @@ factorisation per step) takes over when it fails.
 
 Robustness: Newton's line search backtracks on the energy, which is +inf where any
 tetrahedron has det F <= 0; quasi-Newton's steps to the critical point along its direction,
-halving a trial that inverts an element (a NaN residual). No NaN is ever taken; when a Newton
-solve fails (indefinite K, KSP or line-search failure) a diagonal shift is added and raised;
-when that fails too, the step in p is bisected (continuation). `Equilibrium` keeps K and its
-factorisation/preconditioner (``self.ksp``) for adjoint and sensitivity solves.
+halving a trial that inverts an element (a NaN residual). No NaN is ever taken. A failed
+quasi-Newton solve first bisects the step in p (`QN_BISECTIONS`), then hands over to
+Newton; when a Newton solve fails (indefinite K, KSP or line-search failure) a diagonal
+shift is added and raised; when that fails too, the step in p is bisected (continuation).
+`Equilibrium` keeps K and its factorisation/preconditioner (``self.ksp``) for adjoint and
+sensitivity solves.
 """
 
 from __future__ import annotations
