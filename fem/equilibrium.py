@@ -389,6 +389,15 @@ class Equilibrium:
         local = det.min() if det.size else np.inf
         return self.domain.comm.allreduce(local, op=MPI.MIN)
 
+    def _finite(self, x) -> bool:
+        """x has no NaN or inf on any rank. Collective."""
+        return self.domain.comm.allreduce(bool(np.all(np.isfinite(x.array_r))), op=MPI.LAND)
+
+    def _sound(self, x) -> bool:
+        """The state x is finite and inverts no element; u is left at x. Collective."""
+        self._set_state(x)
+        return self._finite(x) and self.min_det_F() > 0
+
     def _objective(self, snes, x):
         """Energy at x, mJ; +inf where any cell is inverted (ln det F is NaN at a P1 cell's
         single quadrature point; P2 is also checked at the vertices). The line search asks
@@ -431,27 +440,23 @@ class Equilibrium:
         lam = t
         if s1 is not None and s0 > 0 and s0 - s1 > 0:
             lam = min(t * s0 / (s0 - s1), 2 * t)
-            if lam > t and self._slope(x, y, lam, residual=False) is None:
+            if lam > t and not self._sound(self._trial_point(x, y, lam)):
                 lam = t
         y.scale(lam)
         return True
 
-    def _slope(self, x, y, lam: float, residual: bool = True):
+    def _trial_point(self, x, y, lam: float) -> PETSc.Vec:
+        """x - λy in the line search's work vector."""
+        x.copy(self._w)
+        self._w.axpy(-lam, y)
+        return self._w
+
+    def _slope(self, x, y, lam: float):
         """F(x - λy)·y (mN·mm), or None where x - λy inverts an element (P1: the residual is
-        NaN; P2 is also checked at the vertices). ``residual=False``: only the check (0.0
-        when admissible). Collective."""
-        w = self._w
-        x.copy(w)
-        w.axpy(-lam, y)
-        if residual:
-            self._residual(None, w, self._r)
-            val = self._r.dot(y)
-        else:
-            self._set_state(w)
-            val = 0.0
-        ok = np.isfinite(val)   # the same on every rank (a global dot)
-        if ok and (self.domain.degree > 1 or not residual):
-            ok = self.min_det_F() > 0
+        NaN; P2 is also checked at the vertices). Collective."""
+        self._residual(None, self._trial_point(x, y, lam), self._r)
+        val = self._r.dot(y)   # the same on every rank (a global dot)
+        ok = np.isfinite(val) and (self.domain.degree == 1 or self.min_det_F() > 0)
         return val if ok else None
 
     def _residual(self, snes, x, b):
@@ -701,9 +706,9 @@ class Equilibrium:
     def _newton(self, p, p_from, quick: bool = False, qn_only: bool = False):
         """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
         quasi-Newton fails and ``qn_only``, `SolverError` (the caller bisects the step);
-        else Newton goes on from its iterate where that is sound (finite,
-        nothing inverted, bone not held back), else from the same start; when Newton fails, the
-        diagonal shift is raised and it resumes. The residual tolerance is relative to the
+        else Newton goes on from its iterate where that is sound (finite, nothing inverted,
+        bone not held back), else from the same start; when Newton fails, the diagonal
+        shift is raised and it resumes. The residual tolerance is relative to the
         load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start; with no
         load (a refinement) only the step counts."""
         self.set_params(p)
@@ -736,7 +741,7 @@ class Equilibrium:
             self._stats.linear_iterations += snes.getLinearSolveIterations()
             self._set_state(self._x)
             crushed = False
-            if reason > 0 and np.all(np.isfinite(self.u.x.array)):
+            if reason > 0 and self._finite(self._x):
                 gap = self.active_goal_error()
                 if gap <= GOAL_FAILURE_MM:
                     return
@@ -755,7 +760,7 @@ class Equilibrium:
             if snes is not self._newton_snes and qn_only:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
             if snes is not self._newton_snes:   # Newton from quasi-Newton's iterate if sound
-                sound = not crushed and np.isfinite(self._fnorms[-1]) and self.min_det_F() > 0
+                sound = not crushed and self._sound(self._x)
                 log.info("%s: SNES reason %d after %d iterations%s: Newton takes over from %s",
                          snes.getType(), reason, self._last_its,
                          " (tissue crushed)" if crushed else "",
@@ -907,8 +912,7 @@ class Equilibrium:
         state u is left at the equilibrium. Collective."""
         x = x0.copy()
         x.axpy(1.0, step)
-        self._set_state(x)
-        if not self.min_det_F() > 0:
+        if not self._sound(x):
             x.destroy()
             x = None
         self._set_state(self.u_eq)
@@ -920,8 +924,8 @@ class Equilibrium:
         or factorised; each step is one triangular solve pair and two residuals (its
         critical-point line search, `_critical_step`). Stops early where L-BFGS stalls
         (`STALL_RATIO`); steps that end with a larger residual norm than x had, or with an
-        inverted element, are undone. For cheap corrections of a prediction; the scene's equilibrium
-        (p, u) is unchanged. x must not invert an element. Collective."""
+        inverted element, are undone. For cheap corrections of a prediction; the scene's
+        equilibrium (p, u) is unchanged. x must not invert an element. Collective."""
         p = self.set_params(p)
         self._stats = SolveStats()
         t0 = time.perf_counter()
@@ -934,11 +938,8 @@ class Equilibrium:
         try:
             snes.solve(None, x)
             self._stats.newton_iterations = snes.getIterationNumber()
-            self._set_state(x)
-            finite = self.domain.comm.allreduce(bool(np.all(np.isfinite(x.array))),
-                                                op=MPI.LAND)
-            if not (finite and self.min_det_F() > 0) or self._fnorms[-1] > self._fnorms[0]:
-                x0.copy(x)   # steps that end with a larger residual than x had: keep x
+            if not self._sound(x) or self._fnorms[-1] > self._fnorms[0]:
+                x0.copy(x)   # steps that end unsound or with a larger residual: keep x
         finally:
             x0.destroy()
             self.set_params(self.p)
