@@ -86,9 +86,10 @@ class Scene:
             raise InputError(f"expected {len(self.param_names)} finite parameters, got {p}")
         return p
 
-    def solve(self, p) -> SolveStats:
-        """Equilibrium at ``p`` (dict or (Np,)), warm-started from the current equilibrium."""
-        return self.eq.solve(self.param_vector(p))
+    def solve(self, p, tangent: bool = False) -> SolveStats:
+        """Equilibrium at ``p`` (dict or (Np,)), warm-started from the current equilibrium.
+        ``tangent``: an adjoint gradient follows (see `Equilibrium.solve`)."""
+        return self.eq.solve(self.param_vector(p), tangent=tangent)
 
     def landmarks(self, names=None, rest: bool = False) -> dict[str, np.ndarray]:
         """Landmark positions {name: (3,)} mm, deformed (or rest). Collective."""

@@ -47,6 +47,33 @@ def test_taylor_adjoint_gradient(scene, rng):
         scene.solve(P0)
 
 
+def test_tangent_ready_solve_serves_the_adjoint_without_a_factorisation(mandible_only,
+                                                                        tiny_anatomy):
+    """solve(tangent=True): quasi-Newton refactorises once after TANGENT_REFRESH_ITS
+    iterations; the adjoint gradient then reuses that factorisation (CG, no new one) and
+    equals the gradient with a factorisation at the equilibrium itself."""
+    from fem.equilibrium import TANGENT_REFRESH_ITS
+
+    points, stats = {}, {}
+    for tangent in (False, True):   # fresh scenes: both start from a factorisation at rest
+        scene = mandible_only(tiny_anatomy, newton=dict(xtol=1e-4))
+        obj = _objective(scene)
+        stats[tangent] = scene.solve(P0, tangent=tangent)
+        points[tangent] = obj.points()
+    assert stats[False].newton_iterations > TANGENT_REFRESH_ITS   # the refresh has a use
+    assert (stats[False].factorisations, stats[True].factorisations) == (1, 2)
+    assert np.abs(points[True] - points[False]).max() < 1e-3   # the same equilibrium, mm
+    eq, calls = scene.eq, []
+    refactorise = eq._factorise_at_equilibrium
+    eq._factorise_at_equilibrium = lambda: calls.append(1) or refactorise()
+    g = obj.gradient()
+    assert calls == [] and eq.tangent_ksp.getIterationNumber() > 1   # reused, iterated
+    eq._factorise_at_equilibrium()   # now with K at the equilibrium itself
+    g_exact = obj.gradient()
+    assert eq.tangent_ksp.getIterationNumber() <= 2
+    assert np.abs(g - g_exact).max() < 1e-8 * np.abs(g_exact).max()
+
+
 def test_landmark_sensitivity_matches_finite_differences(scene, central_differences):
     obj = _objective(scene)
     scene.solve(P0)
