@@ -243,6 +243,7 @@ class Equilibrium:
         self._fnorms = []                    # residual norms of this SNES solve
         self._refresh = None                 # why it stopped to refactorise: stalled, tangent
         self._tangent_refresh = False        # armed by solve(tangent=True), see _converged
+        self._relaxing = False               # self._qn_snes is relax()'s, pairs kept
         self._last_its = 0                   # iterations of the last SNES solve
         self._pc_ready = False               # the SNES PC holds a factorisation of some K
         self._stale_pc = False               # ... which slowed the last tangent solve
@@ -360,6 +361,7 @@ class Equilibrium:
     def _fresh_qn_snes(self, max_it: int):
         """A new quasi-Newton SNES on the shared KSP (the previous one destroyed)."""
         self._drop_qn_snes()
+        self._relaxing = False   # set by relax() on its own
         self._qn_snes = self._build_snes({**self._search, **METHODS["qn"]}, max_it, self.ksp)
         return self._qn_snes
 
@@ -489,7 +491,9 @@ class Equilibrium:
             self._stats.lagged += 1
             return
         t = time.perf_counter()
-        if x is self.u_eq and A.assembled:   # K at the equilibrium: assembled once, copied
+        # K at the equilibrium: assembled once, copied (MatCopy into a matrix never
+        # assembled leaves it flagged unassembled: the first one is assembled)
+        if x is self.u_eq and A.assembled:
             self._assemble_K()
             self.K.copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
@@ -657,6 +661,7 @@ class Equilibrium:
         p = np.asarray(p, dtype=float).reshape(-1)
         self.set_params(p)  # validates
         self._stats = SolveStats()
+        self._relaxing = False   # relax() pairs do not outlive a solve
         quick = quick and self.method != "newton"
         if quick:
             max_bisections = 0
@@ -940,22 +945,30 @@ class Equilibrium:
         self._set_state(self.u_eq)
         return x
 
-    def relax(self, p, x: PETSc.Vec, iterations: int) -> SolveStats:
+    def relax(self, p, x: PETSc.Vec, iterations: int, resume: bool = False) -> SolveStats:
         """At most ``iterations`` quasi-Newton (L-BFGS) steps towards the equilibrium at p
         (Np,) from x (updated in place, mm), on the kept factorisation: nothing is assembled
         or factorised; each step is one triangular solve pair and two residuals (its
         critical-point line search, `_critical_step`). Stops early where L-BFGS stalls
         (`STALL_RATIO`); steps that end with a larger residual norm than x had, or with an
         inverted element, are undone. For cheap corrections of a prediction; the scene's
-        equilibrium (p, u) is unchanged. x must not invert an element. Collective."""
+        equilibrium (p, u) is unchanged. x must not invert an element. ``resume``: keep the
+        L-BFGS pairs of the previous relax, if no solve came between (a continuation along
+        a path: pairs y = F(x + s) - F(x) do not depend on p, the penalty being quadratic,
+        and recent ones hold the curvature near x). Collective."""
         p = self.set_params(p)
         self._stats = SolveStats()
         t0 = time.perf_counter()
         if not self._pc_ready:   # no factorisation yet: one at the equilibrium
             self._factorise_at_equilibrium()
         self._f_ref = None   # residual tolerance relative to the start's residual
-        snes = self._fresh_qn_snes(iterations)
-        snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factorisation
+        if resume and self._relaxing:
+            snes = self._qn_snes
+            snes.setTolerances(max_it=iterations)
+        else:
+            snes = self._fresh_qn_snes(iterations)
+            snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factorisation
+            self._relaxing = True
         x0 = x.copy()
         try:
             snes.solve(None, x)

@@ -188,11 +188,13 @@ def _fd_gradient(scene, obj, h: float):
 
 
 #: How the benchmarks' corrected prediction is made and timed.
-CORRECTED = ("Corrected: the first-order state, then `inverse.explore.CORRECTION_ITERATIONS` "
-             "= 6 quasi-Newton steps on the kept factorisation of K(p0) (a fresh predictor "
-             "for each m, so every correction and true solve starts from that factorisation); "
-             "where the first-order state inverts an element, the plain prediction "
-             "(corrected = plain).")
+CORRECTED = ("Corrected (`SkinPredictor.corrected`): continuation on the kept factorisation "
+             "of K(p0), in substeps whose first-order step moves no vertex more than "
+             "`CORRECTION_SUBSTEP_MM` = 4 mm, each started from the secant extrapolation of "
+             "the last two (the first: first-order) and relaxed by `CORRECTION_ITERATIONS` = 6 "
+             "quasi-Newton steps, the L-BFGS pairs kept from substep to substep; no assembly "
+             "of K, no factorisation (a fresh predictor for each m, so every correction and "
+             "true solve starts from the factorisation at p0).")
 
 
 def _prediction_errors(scene, mags) -> list:

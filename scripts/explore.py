@@ -9,7 +9,8 @@ At p0 (``--params``/``--p``) it computes S_skin = dx_skin/dp (Np solves with the
 factorisation) and saves ``skin_sensitivity.npz`` (rest and current skin vertices, triangles,
 S (N, 3, Np), names, p0) and ``sensitivity.xdmf`` (dx/dp_i on the volume, for ParaView).
 For each ``scale·dp`` it times the plain prediction ``x(p0) + S dp`` and the corrected one
-(a few quasi-Newton steps on the kept factorisation); with ``--compare`` it also solves the
+(continuation in substeps, each relaxed by a few quasi-Newton steps on the kept
+factorisation); with ``--compare`` it also solves the
 true equilibrium and reports max/mean skin error (mm) and the displacement at Pg.
 """
 
@@ -35,8 +36,11 @@ def main(argv=None):
                     help="a change of the treatment to predict")
     ap.add_argument("--scales", default="1", help="comma-separated multiples of dp")
     ap.add_argument("--iterations", type=int, default=None,
-                    help="quasi-Newton steps of the corrected prediction (default "
-                         "inverse.explore.CORRECTION_ITERATIONS)")
+                    help="quasi-Newton steps per substep of the corrected prediction "
+                         "(default inverse.explore.CORRECTION_ITERATIONS)")
+    ap.add_argument("--substep-mm", type=float, default=None,
+                    help="largest first-order vertex motion of a substep of the corrected "
+                         "prediction, mm (default inverse.explore.CORRECTION_SUBSTEP_MM)")
     ap.add_argument("--compare", action="store_true", help="solve the true equilibria")
     ap.add_argument("--out", help="folder for skin_sensitivity.npz and sensitivity.xdmf")
     ap.add_argument("--report", help="JSON report path")
@@ -44,7 +48,7 @@ def main(argv=None):
     import numpy as np
 
     from fem.io import write_json
-    from inverse.explore import CORRECTION_ITERATIONS, SkinPredictor
+    from inverse.explore import CORRECTION_ITERATIONS, CORRECTION_SUBSTEP_MM, SkinPredictor
     from meshes.errors import InputError
 
     t0 = time.perf_counter()
@@ -73,7 +77,9 @@ def main(argv=None):
             plain = pred.predict(d)
         t_plain = (time.perf_counter() - t) / n_calls
         t = time.perf_counter()
-        corr, corr_lm = pred.corrected(d, args.iterations or CORRECTION_ITERATIONS)
+        corr, corr_lm = pred.corrected(
+            d, CORRECTION_ITERATIONS if args.iterations is None else args.iterations,
+            CORRECTION_SUBSTEP_MM if args.substep_mm is None else args.substep_mm)
         t_corr = time.perf_counter() - t
         row = {"scale": s, "dp": d, "predict_ms": 1e3 * t_plain, "corrected_s": t_corr,
                "Pg_displacement_predicted": pred.predict_landmarks(d)["Pg"] - pg0,

@@ -252,20 +252,40 @@ def test_fit_surface_recovers_the_treatment_of_a_predicted_face(scene):
     assert np.abs(res.params - (P0 + dp)).max() < 1e-3
 
 
-def test_corrected_prediction_is_plain_where_the_first_order_state_inverts(mandible_scene):
-    """The quasi-Newton correction starts from the first-order state; where that state
-    inverts an element (a 20 mm advance from rest on the tiny mesh) the plain prediction is
-    returned, and the scene is left at its equilibrium."""
+def test_corrected_prediction_follows_the_path_where_first_order_inverts(mandible_scene,
+                                                                        monkeypatch):
+    """A 20 mm advance from rest on the tiny mesh: the first-order state inverts an element
+    and errs 3.4 mm; the corrected prediction (substeps from secant starts, relaxed on the
+    factorisation of K at rest) comes within 0.5 mm of the true equilibrium, with no
+    factorisation and the scene left at rest. In one step that may not be halved its start
+    inverts an element: the plain prediction is returned."""
+    import inverse.explore
     from inverse.explore import SkinPredictor
 
+    eq = mandible_scene.eq
     mandible_scene.solve(np.zeros(6))
     pred = SkinPredictor(mandible_scene)
     dp = np.array([20.0, 0, 0, 0, 0, 0])
+    with monkeypatch.context() as m:
+        m.setattr(inverse.explore, "MIN_SUBSTEP", 2.0)
+        np.testing.assert_array_equal(pred.corrected(dp, substep_mm=np.inf)[0],
+                                      pred.predict(dp))
+    for bad in (dict(dp=dp[:3]), dict(dp=dp * np.nan), dict(dp=dp, substep_mm=0.0),
+                dict(dp=dp, iterations=0)):
+        with pytest.raises(InputError):
+            pred.corrected(**bad)
     skin, lm = pred.corrected(dp)
-    np.testing.assert_array_equal(skin, pred.predict(dp))
-    assert mandible_scene.eq.min_det_F() > 0
-    small = np.array([2.0, 0, 0, 0, 0, 0])
-    assert not np.array_equal(pred.corrected(small)[0], pred.predict(small))
+    assert eq._stats.factorisations == 0 and not np.any(eq.p) and eq.min_det_F() > 0
+    halved = pred.corrected(dp, substep_mm=np.inf)[0]   # one step, inverts: halved
+    mandible_scene.solve(dp)
+    true = pred.op.apply(eq.u_eq.array)
+    err_plain = np.linalg.norm(pred.predict(dp) - true, axis=1).max()
+    err_corr = np.linalg.norm(skin - true, axis=1).max()
+    err_halved = np.linalg.norm(halved - true, axis=1).max()   # 2 substeps of 10 mm
+    assert err_plain > 2.0 and err_corr < 0.5, (err_plain, err_corr)
+    assert err_halved < 0.5 * err_plain, (err_plain, err_halved)
+    assert np.allclose(lm["Pg"], mandible_scene.landmarks(["Pg"])["Pg"], atol=0.5)
+    mandible_scene.solve(np.zeros(6))
     pred.destroy()
 
 
