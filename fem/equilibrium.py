@@ -86,13 +86,15 @@ QUICK_REFRESHES = 1
 #: A tangent (adjoint, sensitivity) solve that needs more CG iterations than this with the
 #: kept factorisation has the next one refactorise at the equilibrium.
 TANGENT_LAG_ITS = 5
-#: A quasi-Newton solve told that tangent solves follow (``solve(tangent=True)``) and still
-#: running after this many iterations refactorises once at its iterate: the tangent solves
-#: then reuse a factorisation near the equilibrium instead of making one. Paper size, 30
-#: iterations from rest: forward 9.5 -> 9.2 s, adjoint 3.6 -> 2.2 s (CG: 14 iterations);
-#: refreshing after 6 or 7 iterations cost a third factorisation, after 10-20 the two
-#: together took 11.6-12.6 s against 11.4 s.
-TANGENT_REFRESH_ITS = 8
+#: A quasi-Newton solve told that tangent solves follow (``solve(tangent=True)``), past
+#: `TANGENT_LAG_ITS` iterations (its factorisation would not serve them) and within this
+#: many xtol of convergence (its error estimate, `_error_per_step`), refactorises once at
+#: its iterate: its last iterations and the tangent solves then use a factorisation near
+#: the equilibrium instead of the tangent solves making one. Paper size, from rest (plain:
+#: forward 11.0 s, adjoint 3.4 s): 10 xtol 12.8 + 1.0 s (4 CG iterations), 30 xtol 11.8 +
+#: 1.6 s (8), 100 xtol 11.5 + 1.8 s (10), 300 xtol: refreshed after 7 iterations, too far
+#: away (6 more, and the adjoint refactorised: 10.7 + 3.4 s).
+TANGENT_REFRESH_XTOLS = 30.0
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
 DEFAULT_PENALTY = 5.0e4
 #: An equilibrium whose active vertices stay farther than this from their goals (mm) is
@@ -607,7 +609,8 @@ class Equilibrium:
             full = self._step_shift == 0
         if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
             return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
-        if snes.getType() == "qn" and self._tangent_refresh and it >= TANGENT_REFRESH_ITS:
+        if snes.getType() == "qn" and self._tangent_refresh and it > TANGENT_LAG_ITS and \
+                step <= TANGENT_REFRESH_XTOLS * self.xtol:
             self._tangent_refresh, self._refresh = False, "tangent"
             return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
         if snes.getType() == "qn" and it >= STALL_ITS and \
@@ -648,8 +651,8 @@ class Equilibrium:
         prediction inverts an element or quasi-Newton fails, raise `SolverError` at once (no
         Newton, no continuation), e.g. for a line-search trial that may be shortened.
         ``tangent``: a few tangent solves (an adjoint gradient) follow at this equilibrium;
-        a quasi-Newton solve still running after `TANGENT_REFRESH_ITS` iterations then
-        refactorises once at its iterate, and they reuse that factorisation.
+        a slow quasi-Newton solve then refactorises once near convergence
+        (`TANGENT_REFRESH_XTOLS`), and they reuse that factorisation.
 
         With ``predict``, Newton starts from the first-order prediction
         ``x(p0) + dx/dp (p - p0)`` (one solve with the kept preconditioner, or free when the

@@ -25,9 +25,10 @@ from meshes.errors import InputError
 #: Quasi-Newton steps per substep of a corrected prediction (BENCHMARKS.md: error and time).
 CORRECTION_ITERATIONS = 6
 #: A corrected prediction's substeps move no vertex more than this in their first-order
-#: step, mm. A 20 mm advance (and 6 mm lateral shift) from rest takes 6 substeps: coarse
-#: 3.13 -> 0.19 mm in 0.5 s (true equilibrium: 2.9 s), paper 2.68 -> 0.29 mm in 8.7 s
-#: (true: 211 s); 3 mm: coarse 0.10 mm in 0.6 s.
+#: step, mm. A 20 mm advance (and 6 mm lateral shift) of class3-asym from rest takes 6
+#: substeps: coarse 3.18 -> 0.23 mm in 0.5 s (true equilibrium: 2.5 s), paper 3.13 ->
+#: 0.33 mm in 9.2 s (true: 73 s) (BENCHMARKS.md); 3 mm substeps on class3, coarse: 0.10 mm
+#: in 0.6 s against 0.19 mm in 0.5 s.
 CORRECTION_SUBSTEP_MM = 4.0
 #: Where every start of a substep shorter than this fraction of dp inverts an element, a
 #: corrected prediction gives up (the plain one is returned).

@@ -7,7 +7,8 @@ With ``K = ∂f/∂u`` and ``G = ∂f/∂p`` at the equilibrium (``f(u(p), p) = 
 * landmark sensitivity ``S_T = L dx/dp = -L K⁻¹ G`` (3 Nt, Np) with ``min(Np, 3 Nt)`` solves:
   Np "direct" solves ``K s_i = -G_i`` or 3 Nt "adjoint" solves ``K λ_j = Lᵀ e_j``.
 
-Every solve reuses the factorisation the forward Newton built (`Equilibrium.solve_tangent`).
+Every solve reuses the factorisation the forward solve built (`Equilibrium.solve_tangent`);
+``value_and_gradient`` solves tangent-ready (`Equilibrium.solve`, ``tangent=True``).
 """
 
 from __future__ import annotations
@@ -145,9 +146,17 @@ class Objective:
         return out
 
     def gradient(self) -> np.ndarray:
-        """dT/dp (Np,) at the current equilibrium, by one adjoint solve."""
+        """dT/dp (Np,) at the current equilibrium, by one adjoint solve (on the forward
+        solve's factorisation when it was solved with ``tangent=True``)."""
         g = self.weights[:, None] * self.residual()
         return self._adjoint(g) + self.tikhonov * self.eq.p
+
+    def value_and_gradient(self, p) -> tuple[float, np.ndarray]:
+        """(T mm², dT/dp (Np,)) at p (Np,): a tangent-ready forward solve, then one adjoint
+        solve that reuses its factorisation. For gradient-based optimisers, e.g.
+        ``scipy.optimize.minimize(obj.value_and_gradient, p0, jac=True)``."""
+        self.eq.solve(p, tangent=True)
+        return self.value(), self.gradient()
 
     def jacobian(self, mode: str = "auto"):
         """S_T = dx_T/dp, shape (3 Nt, Np) (rows x,y,z per point), and the mode used.

@@ -304,7 +304,7 @@ def plan(args) -> None:
              "yaw -3°, maxilla 1.5 mm), then one adjoint gradient. Plain: the adjoint "
              "factorises K at the equilibrium (quasi-Newton's factorisation is K at rest); "
              "tangent-ready (`solve(tangent=True)`): the forward solve refactorises once "
-             "after `TANGENT_REFRESH_ITS` iterations and the adjoint's CG reuses that "
+             "near convergence (`TANGENT_REFRESH_XTOLS`) and the adjoint's CG reuses that "
              "factorisation. The columns after it are from the tangent-ready solve.", "",
              "| resolution | forward plain | adjoint (factorises) | forward tangent-ready | "
              "adjoint gradient (CG its) | adjoint / forward | forward, warm | "
