@@ -239,6 +239,29 @@ def test_explore_saves_sensitivities_and_compares(tmp_path):
     assert (out / "sensitivity.xdmf").exists()
 
 
+@pytest.mark.mpi
+def test_explore_corrected_prediction_same_on_1_and_2_ranks(tmp_path):
+    """A 20 mm advance from rest on tiny (first-order state inverted; the corrected
+    prediction's substeps, secant starts and kept L-BFGS pairs all at work): the same
+    predictions and errors on 1 and 2 ranks, and the correction within 0.5 mm."""
+    reports = {}
+    for n in (1, 2):
+        out = tmp_path / f"n{n}"
+        r = _run(_mpirun(n) + [sys.executable, str(ROOT / "scripts" / "explore.py"),
+                               "--case", "class3", "--resolution", "tiny", "--params-used",
+                               "mandible.advance_mm,mandible.lateral_mm",
+                               "--dp", "mandible.advance_mm=20", "--compare",
+                               "--report", str(out / "r.json")])
+        assert r.returncode == 0, r.stderr[-2000:]
+        reports[n] = json.loads((out / "r.json").read_text())["predictions"][0]
+    one, two = reports[1], reports[2]
+    assert one["plain_error_max_mm"] > 2.0 and one["corrected_error_max_mm"] < 0.5
+    for key in ("Pg_displacement_predicted", "Pg_displacement_corrected"):   # no solve
+        np.testing.assert_allclose(two[key], one[key], atol=1e-6)
+    for key in ("plain_error_max_mm", "corrected_error_max_mm"):   # against true solves,
+        assert abs(one[key] - two[key]) < 1e-4, (key, one[key], two[key])   # xtol 5e-3 mm
+
+
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
 def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
     """A run stopped by a signal exits cleanly and leaves no half-written file; what is
