@@ -243,7 +243,10 @@ def test_explore_saves_sensitivities_and_compares(tmp_path):
 def test_explore_corrected_prediction_same_on_1_and_2_ranks(tmp_path):
     """A 20 mm advance from rest on tiny (first-order state inverted; the corrected
     prediction's substeps, secant starts and kept L-BFGS pairs all at work): the same
-    predictions and errors on 1 and 2 ranks, and the correction within 0.5 mm."""
+    predictions on 1 and 2 ranks (measured: 4e-8 mm), errors against the true equilibria
+    the same up to those solves' tolerance, and the correction within 0.5 mm."""
+    from fem.equilibrium import METHOD_DEFAULTS
+
     reports = {}
     for n in (1, 2):
         out = tmp_path / f"n{n}"
@@ -258,8 +261,9 @@ def test_explore_corrected_prediction_same_on_1_and_2_ranks(tmp_path):
     assert one["plain_error_max_mm"] > 2.0 and one["corrected_error_max_mm"] < 0.5
     for key in ("Pg_displacement_predicted", "Pg_displacement_corrected"):   # no solve
         np.testing.assert_allclose(two[key], one[key], atol=1e-6)
-    for key in ("plain_error_max_mm", "corrected_error_max_mm"):   # against true solves,
-        assert abs(one[key] - two[key]) < 1e-4, (key, one[key], two[key])   # xtol 5e-3 mm
+    xtol = METHOD_DEFAULTS["qn"]["xtol"]   # the true solves' tolerance, mm
+    for key in ("plain_error_max_mm", "corrected_error_max_mm"):   # against true solves
+        assert abs(one[key] - two[key]) < xtol, (key, one[key], two[key])
 
 
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
