@@ -729,6 +729,7 @@ class Equilibrium:
                         st.goal_error, GOAL_TOLERANCE_MM, np.round(p, 3).tolist(), st.min_det_F)
         st.total = time.perf_counter() - t0
         st.linear_solve = max(st.total - st.assemble, 0.0)
+        self._stats = SolveStats()   # later tangent work must not change what was returned
         return st
 
     def _newton(self, p, p_from, quick: bool = False, qn_only: bool = False):

@@ -70,6 +70,7 @@ def test_tangent_ready_solve_serves_the_adjoint_without_a_factorisation(mandible
     g = obj.gradient()
     assert calls == [] and eq.tangent_ksp.getIterationNumber() > 1   # reused, iterated
     eq._factorise_at_equilibrium()   # now with K at the equilibrium itself
+    assert stats[True].factorisations == 2   # the solve's stats stay the solve's
     g_exact = obj.gradient()
     assert eq.tangent_ksp.getIterationNumber() <= 2
     assert np.abs(g - g_exact).max() < 1e-8 * np.abs(g_exact).max()
