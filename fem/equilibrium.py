@@ -10,7 +10,9 @@ factorisation per step) takes over when it fails.
 
 Robustness: Newton's line search backtracks on the energy, which is +inf where any
 tetrahedron has det F <= 0; quasi-Newton's steps to the critical point along its direction,
-halving a trial that inverts an element (a NaN residual). No NaN is ever taken. A failed
+halving a trial that inverts an element (a NaN residual). No NaN is ever taken. A step
+whose first-order start inverts an element starts where `Equilibrium.follow` gets along the
+path (secant continuation relaxed on the kept factorisation). A failed
 quasi-Newton solve first bisects the step in p (`QN_BISECTIONS`), then hands over to
 Newton; when a Newton solve fails (indefinite K, KSP or line-search failure) a diagonal
 shift is added and raised; when that fails too, the step in p is bisected (continuation).
@@ -95,6 +97,12 @@ TANGENT_LAG_ITS = 5
 #: 1.6 s (8), 100 xtol 11.5 + 1.8 s (10), 300 xtol: refreshed after 7 iterations, too far
 #: away (6 more, and the adjoint refactorised: 10.7 + 3.4 s).
 TANGENT_REFRESH_XTOLS = 30.0
+#: Path following (`Equilibrium.follow`): substeps whose first-order step moves no vertex
+#: more than PATH_SUBSTEP_MM (mm), each relaxed by PATH_ITERATIONS quasi-Newton steps; where
+#: every start of a substep shorter than MIN_SUBSTEP of the way inverts an element, it gives
+#: up. A solve whose first-order start inverts an element starts from there: 20 mm advance
+#: and 6 mm lateral shift from rest, class3-asym, coarse 2.6 -> 0.9 s, paper 75 -> 29 s.
+PATH_SUBSTEP_MM, PATH_ITERATIONS, MIN_SUBSTEP = 4.0, 6, 1.0 / 64
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
 DEFAULT_PENALTY = 5.0e4
 #: An equilibrium whose active vertices stay farther than this from their goals (mm) is
@@ -654,9 +662,11 @@ class Equilibrium:
         a slow quasi-Newton solve then refactorises once near convergence
         (`TANGENT_REFRESH_XTOLS`), and they reuse that factorisation.
 
-        With ``predict``, Newton starts from the first-order prediction
-        ``x(p0) + dx/dp (p - p0)`` (one solve with the kept preconditioner, or free when the
-        sensitivities are cached) when it inverts no element. A quasi-Newton failure bisects
+        With ``predict``, the solve starts from the first-order prediction
+        ``x(p0) + dx/dp (p - p0)`` (one solve with the kept factorisation, made first at the
+        equilibrium if there is none yet; free when the sensitivities are cached) when it
+        inverts no element; where it does (and the solve is not quick), from the state
+        `follow` reaches along the path, with K refactorised there. A quasi-Newton failure bisects
         the step in p (continuation, up to `QN_BISECTIONS` times), then Newton takes over;
         ``max_bisections`` bounds all bisections. Returns `SolveStats`; raises `SolverError`
         when even continuation fails, leaving the last good equilibrium.
@@ -672,7 +682,7 @@ class Equilibrium:
             self._set_state(self.u_eq)
             return self._stats
         t0 = time.perf_counter()
-        start = self.first_order(p) if predict else None
+        start = self.first_order(p, follow=not quick) if predict else None
         if quick and start is None and predict and self._can_predict(p):
             self.set_params(self.p)   # the scene stays at its equilibrium
             self._set_state(self.u_eq)
@@ -921,12 +931,19 @@ class Equilibrium:
         return out
 
     def _can_predict(self, p) -> bool:
-        """p differs from the equilibrium's and a factorisation (or dx/dp) is at hand."""
-        return bool(np.any(p != self.p) and (self._pc_ready or self.has_sensitivity))
+        """p differs from the equilibrium's and a factorisation (or dx/dp) is at hand, or
+        quasi-Newton would make one at the equilibrium first anyway (then it is made for the
+        prediction and serves both)."""
+        quasi_newton = self.method == "qn" and self.xtol >= QN_MIN_XTOL
+        return bool(np.any(p != self.p) and (self._pc_ready or self.has_sensitivity
+                                             or quasi_newton))
 
-    def first_order(self, p):
+    def first_order(self, p, follow: bool = False):
         """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None
-        when it inverts an element, there is no factorisation yet, or p is p0. Collective."""
+        when it inverts an element, there is no factorisation yet, or p is p0. ``follow``:
+        where it inverts an element, the state `follow` reaches instead; the kept
+        factorisation, of K at p0, is then refactorised at the next solve's start.
+        Collective."""
         if not self._can_predict(p):
             return None
         try:
@@ -934,9 +951,74 @@ class Equilibrium:
         except SolverError:
             return None
         try:
-            return self.admissible(self.u_eq, step)
+            x = self.admissible(self.u_eq, step)
+            if x is None and follow:
+                x = self.follow(self.p, self.u_eq, step, p)
+                self._refactor = x is not None
+            return x
         finally:
             step.destroy()
+
+    def follow(self, p0, x0: PETSc.Vec, step: PETSc.Vec, p, iterations: int = PATH_ITERATIONS,
+               substep_mm: float = PATH_SUBSTEP_MM):
+        """A state near the equilibrium at p (a new PETSc vector, mm), by continuation from
+        the state x0 at p0 along the straight path, with ``step`` = dx/dp (p - p0) its
+        first-order step, on the kept factorisation (nothing assembled or factorised). The
+        substeps are equal, the fewest whose first-order step moves no vertex more than
+        ``substep_mm``; the first starts from the first-order state, every later one from
+        the secant extrapolation x_j + h/h_prev (x_j - x_(j-1)) of the last two states,
+        which follows the path's curvature; each start is relaxed by ``iterations``
+        quasi-Newton steps (`relax`), the L-BFGS pairs carried from substep to substep. A
+        secant start that inverts an element is replaced by the first-order one; where that
+        inverts too, the substep is halved; below `MIN_SUBSTEP` of the way: None. The
+        relax iterations (and a factorisation, if there was none) are added to the current
+        stats. Collective."""
+        p0, p = np.asarray(p0, dtype=float), np.asarray(p, dtype=float)
+        stats = self._stats   # relax() keeps its own
+        h = 1.0 / max(1, int(np.ceil(step.norm(PETSc.NormType.INFINITY) / substep_mm)))
+        x, prev, t, h_prev, substeps = x0.copy(), None, 0.0, 0.0, 0   # t: the way done
+        try:
+            while t < 1.0:
+                h = min(h, 1.0 - t)
+                start = None
+                if prev is not None:   # secant
+                    start = self._offset(x, x, prev, h / h_prev)
+                if start is None:   # first-order
+                    start = self._offset(x, step, None, h)
+                if start is None:
+                    if h < MIN_SUBSTEP:
+                        log.info("no path to p = %s: every start from %.3g of the way inverts "
+                                 "an element", np.round(p, 3).tolist(), t)
+                        x.destroy()
+                        x = None
+                        return None
+                    h /= 2
+                    continue
+                if prev is not None:
+                    prev.destroy()
+                prev, x, h_prev = x, start, h
+                t = 1.0 if t + h > 1.0 - 1e-12 else t + h
+                st = self.relax(p0 + t * (p - p0), x, iterations, resume=substeps > 0)
+                stats.newton_iterations += st.newton_iterations
+                stats.factorisations += st.factorisations
+                substeps += 1
+            return x
+        finally:
+            self._stats = stats
+            if prev is not None:
+                prev.destroy()
+
+    def _offset(self, x, a, b, c: float):
+        """x + c (a - b) (b None: x + c a) as a new vector, or None where it inverts an
+        element (`admissible`)."""
+        d = a.copy()
+        if b is not None:
+            d.axpy(-1.0, b)
+        d.scale(c)
+        try:
+            return self.admissible(x, d)
+        finally:
+            d.destroy()
 
     def admissible(self, x0: PETSc.Vec, step: PETSc.Vec):
         """x0 + step (a new PETSc vector, mm), or None where it inverts an element. The

@@ -12,27 +12,21 @@ assembly of K, no refactorisation.
 
 from __future__ import annotations
 
-from petsc4py import PETSc
-
 import logging
 
 import numpy as np
 
-from fem.equilibrium import Equilibrium
+from fem.equilibrium import PATH_ITERATIONS, PATH_SUBSTEP_MM
 from inverse.objective import Objective, point_sensitivity
 from meshes.errors import InputError
 
-#: Quasi-Newton steps per substep of a corrected prediction (BENCHMARKS.md: error and time).
-CORRECTION_ITERATIONS = 6
-#: A corrected prediction's substeps move no vertex more than this in their first-order
-#: step, mm. A 20 mm advance (and 6 mm lateral shift) of class3-asym from rest takes 6
+#: Quasi-Newton steps per substep of a corrected prediction (BENCHMARKS.md: error and time),
+#: and the largest first-order vertex motion of a substep, mm: those of the solver's path
+#: following. A 20 mm advance (and 6 mm lateral shift) of class3-asym from rest takes 6
 #: substeps: coarse 3.18 -> 0.23 mm in 0.5 s (true equilibrium: 2.5 s), paper 3.13 ->
 #: 0.33 mm in 9.2 s (true: 73 s) (BENCHMARKS.md); 3 mm substeps on class3, coarse: 0.10 mm
 #: in 0.6 s against 0.19 mm in 0.5 s.
-CORRECTION_SUBSTEP_MM = 4.0
-#: Where every start of a substep shorter than this fraction of dp inverts an element, a
-#: corrected prediction gives up (the plain one is returned).
-MIN_SUBSTEP = 1.0 / 64
+CORRECTION_ITERATIONS, CORRECTION_SUBSTEP_MM = PATH_ITERATIONS, PATH_SUBSTEP_MM
 
 log = logging.getLogger(__name__)
 
@@ -82,69 +76,31 @@ class SkinPredictor:
 
     def corrected(self, dp, iterations: int = CORRECTION_ITERATIONS,
                   substep_mm: float = CORRECTION_SUBSTEP_MM):
-        """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp, by continuation on K(p0)'s
-        kept factorisation. dp is cut into k equal substeps, k the fewest whose first-order
-        step (dx/dp) dp / k moves no vertex more than ``substep_mm``. The first substep
-        starts from the first-order state; every later one from the secant extrapolation
-        2 x_j - x_(j-1) of the last two corrected states, which follows the path's
+        """(skin (N, 3), landmarks {name: (3,)}) mm at p0 + dp, by continuation from x(p0)
+        on K(p0)'s kept factorisation (`Equilibrium.follow`: substeps of at most
+        ``substep_mm`` first-order motion from secant starts, each relaxed by ``iterations``
+        quasi-Newton steps with the L-BFGS pairs kept). The secant starts follow the path's
         curvature (coarse, 20 mm advance, 4 substeps of 10 steps: 0.44 mm; first-order
-        starts: 1.29 mm); each start is relaxed by ``iterations`` quasi-Newton steps
-        (`Equilibrium.relax`) whose L-BFGS pairs carry over from substep to substep (paper,
-        20 mm: 0.62 -> 0.29 mm). No assembly of K, no refactorisation; the scene's
-        equilibrium is unchanged. A secant start that inverts an element is replaced by the
-        first-order one; where that inverts too, the substep is halved (down to
-        `MIN_SUBSTEP` of dp; then the plain prediction is returned). Collective."""
+        starts: 1.29 mm) and the kept pairs its stiffening (paper, 20 mm: 0.62 -> 0.29 mm).
+        No assembly of K, no refactorisation; the scene's equilibrium is unchanged. Where
+        no path is found (every start of a short substep inverts an element), the plain
+        prediction is returned. Collective."""
         if not (iterations >= 1 and substep_mm > 0):
             raise InputError(f"a corrected prediction needs iterations >= 1 and substep_mm > 0,"
                              f" got {iterations} and {substep_mm}")
-        eq: Equilibrium = self.eq
         dp = self._check(dp)
         step = self._u0.duplicate()   # first-order step to p0 + dp
         step.set(0.0)
         step.maxpy(dp, self._dxdp)
-        h = 1.0 / max(1, int(np.ceil(step.norm(PETSc.NormType.INFINITY) / substep_mm)))
-        x, prev, t, h_prev = self._u0.copy(), None, 0.0, 0.0   # t: fraction of dp done
-        substeps = 0
+        x = self.eq.follow(self.p0, self._u0, step, self.p0 + dp, iterations, substep_mm)
+        step.destroy()
+        if x is None:
+            return self.predict(dp), self.predict_landmarks(dp)
         try:
-            while t < 1.0:
-                h = min(h, 1.0 - t)
-                start = None
-                if prev is not None:   # secant: x + h/h_prev (x - x_prev)
-                    start = self._start(x, x, prev, h / h_prev)
-                if start is None:   # first-order: x + h dx/dp dp
-                    start = self._start(x, step, None, h)
-                if start is None:
-                    if h < MIN_SUBSTEP:
-                        log.info("corrected prediction at dp = %s: every start from %.3g of "
-                                 "the way inverts an element: plain prediction",
-                                 np.round(dp, 3).tolist(), t)
-                        return self.predict(dp), self.predict_landmarks(dp)
-                    h /= 2
-                    continue
-                if prev is not None:
-                    prev.destroy()
-                prev, x, h_prev = x, start, h
-                t = 1.0 if t + h > 1.0 - 1e-12 else t + h
-                eq.relax(self.p0 + t * dp, x, iterations, resume=substeps > 0)
-                substeps += 1
             return self.op.apply(x.array), dict(zip(self.landmark_names,
                                                     self.lm_op.apply(x.array)))
         finally:
-            for v in (x, prev, step):
-                if v is not None:
-                    v.destroy()
-
-    def _start(self, x, a, b, c: float):
-        """x + c (a - b) (b None: x + c a) as a new vector, or None where it inverts an
-        element (`Equilibrium.admissible`)."""
-        d = a.copy()
-        if b is not None:
-            d.axpy(-1.0, b)
-        d.scale(c)
-        try:
-            return self.eq.admissible(x, d)
-        finally:
-            d.destroy()
+            x.destroy()
 
     def destroy(self):
         for v in (self._u0, *self._dxdp):

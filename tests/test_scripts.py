@@ -170,8 +170,11 @@ def test_plan_same_on_1_and_2_ranks(tmp_path):
 def test_plan_checkpoint_and_resume(tmp_path):
     """A plan cut after 2 iterations and resumed from its checkpoint ends where the same
     plan run at once ends, with one continuous history; a checkpoint of another plan is
-    refused."""
-    args = PLAN + ["--tikhonov", "0.01", "--ftol", "1e-9"]
+    refused. ftol stays well above the forward solves' noise in T (~1e-9 relative here):
+    where the stop is decided at that level, runs with different solve histories may stop
+    an iteration apart."""
+    ftol = 1e-6
+    args = PLAN + ["--tikhonov", "0.01", "--ftol", str(ftol)]
     full, part, ck = tmp_path / "full.json", tmp_path / "part.json", tmp_path / "ck.json"
     r = _run(args + ["--report", str(full)])
     assert r.returncode == 0, r.stderr[-2000:]
@@ -190,7 +193,7 @@ def test_plan_checkpoint_and_resume(tmp_path):
     # where T decreases by less than ftol, p is decided only to sqrt(2 ftol T / alpha) along
     # the flattest direction (curvature: the Tikhonov alpha); the last accepted step may differ
     np.testing.assert_allclose(b["params_optimal"], a["params_optimal"],
-                               atol=np.sqrt(2 * 1e-9 * T_a[-1] / 0.01))
+                               atol=np.sqrt(2 * ftol * T_a[-1] / 0.01))
     np.testing.assert_allclose(b["params_initial"], a["params_initial"])
     assert b["mean_distance_before_mm"] == pytest.approx(a["mean_distance_before_mm"])
     r = _run(args + ["--landmarks", "Pg,Li", "--checkpoint", str(ck), "--resume"])
