@@ -101,7 +101,8 @@ TANGENT_REFRESH_XTOLS = 30.0
 #: more than PATH_SUBSTEP_MM (mm), each relaxed by PATH_ITERATIONS quasi-Newton steps; where
 #: every start of a substep shorter than MIN_SUBSTEP of the way inverts an element, it gives
 #: up. A solve whose first-order start inverts an element starts from there: 20 mm advance
-#: and 6 mm lateral shift from rest, class3-asym, coarse 2.6 -> 0.9 s, paper 75 -> 29 s.
+#: and 6 mm lateral shift from rest, class3-asym (BENCHMARKS.md, stress): coarse 2.3 ->
+#: 0.9 s, paper 68.6 -> 31.5 s (3 factorisations instead of 8, no continuation).
 PATH_SUBSTEP_MM, PATH_ITERATIONS, MIN_SUBSTEP = 4.0, 6, 1.0 / 64
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
 DEFAULT_PENALTY = 5.0e4
@@ -918,7 +919,8 @@ class Equilibrium:
 
     def tangent_step(self, dp) -> PETSc.Vec:
         """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
-        tangent solve."""
+        tangent solve; with no factorisation yet, one is made at the equilibrium, and a
+        Cholesky factor of K there is applied once (no K assembled, no CG)."""
         dp = np.asarray(dp, dtype=float)
         out = self.u_eq.duplicate()
         out.set(0.0)
@@ -926,7 +928,13 @@ class Equilibrium:
             out.maxpy(dp, self._sens)
             return out
         rhs = self._load(-dp)
-        self.solve_tangent(rhs, out)
+        if not self._pc_ready:
+            self._factorise_at_equilibrium()
+        pc = self.ksp.getPC()
+        if self._pc_at_eq and pc.getType() == "cholesky":
+            pc.apply(rhs, out)
+        else:
+            self.solve_tangent(rhs, out)
         rhs.destroy()
         return out
 
