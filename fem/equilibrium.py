@@ -102,7 +102,7 @@ TANGENT_REFRESH_XTOLS = 30.0
 #: every start of a substep shorter than MIN_SUBSTEP of the way inverts an element, it gives
 #: up. A solve whose first-order start inverts an element starts from there: 20 mm advance
 #: and 6 mm lateral shift from rest, class3-asym (BENCHMARKS.md, stress): coarse 2.3 ->
-#: 0.9 s, paper 68.6 -> 31.5 s (3 factorisations instead of 8, no continuation).
+#: 0.85 s, paper 68.6 -> 29.4 s (3 factorisations instead of 8, no continuation).
 PATH_SUBSTEP_MM, PATH_ITERATIONS, MIN_SUBSTEP = 4.0, 6, 1.0 / 64
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3).
 DEFAULT_PENALTY = 5.0e4
