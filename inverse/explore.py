@@ -23,8 +23,8 @@ from meshes.errors import InputError
 #: Quasi-Newton steps per substep of a corrected prediction (BENCHMARKS.md: error and time),
 #: and the largest first-order vertex motion of a substep, mm: those of the solver's path
 #: following. A 20 mm advance (and 6 mm lateral shift) of class3-asym from rest takes 6
-#: substeps: coarse 3.18 -> 0.23 mm in 0.5 s (true equilibrium: 2.5 s), paper 3.13 ->
-#: 0.33 mm in 9.2 s (true: 73 s) (BENCHMARKS.md); 3 mm substeps on class3, coarse: 0.10 mm
+#: substeps: coarse 3.18 -> 0.23 mm in 0.48 s (true equilibrium: 0.65 s), paper 3.13 ->
+#: 0.33 mm in 8.3 s (true: 23 s) (BENCHMARKS.md); 3 mm substeps on class3, coarse: 0.10 mm
 #: in 0.6 s against 0.19 mm in 0.5 s.
 CORRECTION_ITERATIONS, CORRECTION_SUBSTEP_MM = PATH_ITERATIONS, PATH_SUBSTEP_MM
 
