@@ -973,9 +973,9 @@ class Equilibrium:
         the state x0 at p0 along the straight path, with ``step`` = dx/dp (p - p0) its
         first-order step, on the kept factorisation (nothing assembled or factorised). The
         substeps are equal, the fewest whose first-order step moves no vertex more than
-        ``substep_mm``; the first starts from the first-order state, every later one from
-        the secant extrapolation x_j + h/h_prev (x_j - x_(j-1)) of the last two states,
-        which follows the path's curvature; each start is relaxed by ``iterations``
+        ``substep_mm`` along any axis; the first starts from the first-order state, every
+        later one from the secant extrapolation x_j + h/h_prev (x_j - x_(j-1)) of the last
+        two states, which follows the path's curvature; each start is relaxed by ``iterations``
         quasi-Newton steps (`relax`), the L-BFGS pairs carried from substep to substep. A
         secant start that inverts an element is replaced by the first-order one; where that
         inverts too, the substep is halved; below `MIN_SUBSTEP` of the way: None. The
@@ -985,6 +985,7 @@ class Equilibrium:
         stats = self._stats   # relax() keeps its own
         h = 1.0 / max(1, int(np.ceil(step.norm(PETSc.NormType.INFINITY) / substep_mm)))
         x, prev, t, h_prev, substeps = x0.copy(), None, 0.0, 0.0, 0   # t: the way done
+        found = False
         try:
             while t < 1.0:
                 h = min(h, 1.0 - t)
@@ -997,8 +998,6 @@ class Equilibrium:
                     if h < MIN_SUBSTEP:
                         log.info("no path to p = %s: every start from %.3g of the way inverts "
                                  "an element", np.round(p, 3).tolist(), t)
-                        x.destroy()
-                        x = None
                         return None
                     h /= 2
                     continue
@@ -1010,11 +1009,13 @@ class Equilibrium:
                 stats.newton_iterations += st.newton_iterations
                 stats.factorisations += st.factorisations
                 substeps += 1
+            found = True
             return x
         finally:
             self._stats = stats
-            if prev is not None:
-                prev.destroy()
+            for v in (prev, None if found else x):
+                if v is not None:
+                    v.destroy()
 
     def _offset(self, x, a, b, c: float):
         """x + c (a - b) (b None: x + c a) as a new vector, or None where it inverts an
