@@ -190,10 +190,8 @@ def test_plan_checkpoint_and_resume(tmp_path):
     assert [h["iteration"] for h in b["history"]] == list(range(b["gn_iterations"] + 1))
     T_a, T_b = ([h["T"] for h in x["history"]] for x in (a, b))
     np.testing.assert_allclose(T_b, T_a, rtol=1e-8)   # the same path, iteration by iteration
-    # where T decreases by less than ftol, p is decided only to sqrt(2 ftol T / alpha) along
-    # the flattest direction (curvature: the Tikhonov alpha); the last accepted step may differ
-    np.testing.assert_allclose(b["params_optimal"], a["params_optimal"],
-                               atol=np.sqrt(2 * ftol * T_a[-1] / 0.01))
+    # the same path, the same stop: p agrees to the forward solves' noise (measured 2.5e-9)
+    np.testing.assert_allclose(b["params_optimal"], a["params_optimal"], atol=1e-6)
     np.testing.assert_allclose(b["params_initial"], a["params_initial"])
     assert b["mean_distance_before_mm"] == pytest.approx(a["mean_distance_before_mm"])
     r = _run(args + ["--landmarks", "Pg,Li", "--checkpoint", str(ck), "--resume"])
