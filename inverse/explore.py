@@ -58,20 +58,13 @@ class SkinPredictor:
         self.lm0 = self.lm_op.apply(self.eq.u_eq.array)
         self.lm_S = point_sensitivity(self.eq, self.lm_op)
 
-    def _check(self, dp) -> np.ndarray:
-        """dp as a validated (Np,) array."""
-        dp = np.asarray(dp, dtype=float).reshape(-1)
-        if dp.shape != self.p0.shape or not np.all(np.isfinite(dp)):
-            raise InputError(f"dp must be {self.p0.size} finite numbers, got {dp.tolist()}")
-        return dp
-
     def predict(self, dp) -> np.ndarray:
         """Plain first-order skin (N, 3) mm at p0 + dp. Local, no communication."""
-        return self.x0 + (self._S2 @ self._check(dp)).reshape(-1, 3)
+        return self.x0 + (self._S2 @ self.scene.param_vector(dp)).reshape(-1, 3)
 
     def predict_landmarks(self, dp) -> dict:
         """Plain first-order landmarks {name: (3,)} mm at p0 + dp."""
-        pts = self.lm0 + self.lm_S @ self._check(dp)
+        pts = self.lm0 + self.lm_S @ self.scene.param_vector(dp)
         return dict(zip(self.landmark_names, pts))
 
     def corrected(self, dp, iterations: int = CORRECTION_ITERATIONS,
@@ -88,7 +81,7 @@ class SkinPredictor:
         if not (iterations >= 1 and substep_mm > 0):
             raise InputError(f"a corrected prediction needs iterations >= 1 and substep_mm > 0,"
                              f" got {iterations} and {substep_mm}")
-        dp = self._check(dp)
+        dp = self.scene.param_vector(dp)
         step = self._u0.duplicate()   # first-order step to p0 + dp
         step.set(0.0)
         step.maxpy(dp, self._dxdp)
