@@ -35,7 +35,7 @@ class Domain:
         (n_local_nodes, 2) the vertex pair naming each dof block (module docstring).
         input_index: (n_local_nodes,) original vertex index of each dof block, -1 on edges.
         node_of_block: (n_local_nodes,) geometry node of each dof block, -1 on edges.
-        segments, pivots, landmarks, name, n_vertices, n_cells: as in `Anatomy`.
+        segments, pivots, landmarks, name, n_vertices, n_cells, occlusion: as in `Anatomy`.
     """
 
     mesh: object
@@ -50,6 +50,7 @@ class Domain:
     name: str
     n_vertices: int
     n_cells: int
+    occlusion: np.ndarray | None = None
 
     @property
     def degree(self) -> int:
@@ -209,7 +210,8 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
             anatomy.validate()
             meta = dict(segments=anatomy.segments, pivots=anatomy.pivots,
                         landmarks=anatomy.landmarks, name=anatomy.name,
-                        n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells)
+                        n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells,
+                        occlusion=anatomy.occlusion)
             cells, x = anatomy.cells, anatomy.points
             facets, values = anatomy.facets, anatomy.facet_tags
         except Exception as e:  # re-raised on every rank below

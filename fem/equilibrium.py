@@ -1,8 +1,10 @@
 """Quasi-static equilibrium x(p) = argmin E_NH(x) + k/2 |x_A - x̂_A(p)|², solved with PETSc SNES.
 
 The energy is UFL; residual f = dE/du, Jacobian K = df/du and the goal coupling df/dg come from
-``ufl.derivative``. The goal displacement of the active bone is ``g = B p`` for a blendshape
-matrix B (n_dofs, Np), so ``df/dp = (df/dg) B`` is assembled once (the penalty is quadratic).
+``ufl.derivative``. The goal displacement of the active bone is ``g(p)`` (`LinearGoals`: a
+blendshape matrix, ``g = B p``; or any map with the same interface, such as exact rigid
+motions), so ``df/dp = (df/dg) dg/dp``: df/dg is assembled once (the penalty is quadratic),
+dg/dp is taken at the current equilibrium's p.
 
 The default method is quasi-Newton (SNESQN, L-BFGS) whose initial inverse Hessian is the kept
 factorisation of K: one factorisation serves many solves. Newton (SNES newtonls, a
@@ -35,6 +37,7 @@ import ufl
 
 from fem import compat
 from fem.domain import Domain
+from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, OPTIONS, check
 from fem.material import NeoHookean
 from meshes.errors import InputError, SolverError
 
@@ -131,6 +134,27 @@ class SolveStats:
     total: float = 0.0
     goal_error: float = 0.0   # max |u - B p| over active vertices, mm
     min_det_F: float = 1.0    # smallest volume ratio J at the equilibrium
+    warnings: list = dataclasses.field(default_factory=list)   # goal error, compression
+
+
+class LinearGoals:
+    """Goal displacements linear in p: ``g = B p`` for blendshapes B (n_local_blocks * 3,
+    Np), mm per unit (paper eq. 1). The interface `Equilibrium` takes: ``n_params``,
+    ``linear``, ``goal(p)`` (n_local_blocks * 3,) and ``jacobian(p)`` (its B)."""
+
+    linear = True
+
+    def __init__(self, B):
+        self.B = np.asarray(B, dtype=float)
+        if self.B.ndim != 2:
+            raise InputError(f"blendshapes must be a 2-d array, got shape {self.B.shape}")
+        self.n_params = self.B.shape[1]
+
+    def goal(self, p) -> np.ndarray:
+        return self.B @ p
+
+    def jacobian(self, p) -> np.ndarray:
+        return self.B
 
 
 class _ApplyOther:
@@ -148,8 +172,10 @@ class Equilibrium:
 
     Args:
         domain: the distributed anatomy.
-        blendshapes: (n_local_blocks * 3, Np) goal displacement per unit parameter, mm per
-            parameter unit, nonzero only on active-segment vertices (ghosts included).
+        goals: the goal displacement g(p) of the active vertices: `LinearGoals` (or its
+            blendshape matrix (n_local_blocks * 3, Np), ghosts included), or a map with the
+            same interface (e.g. `inverse.treatment.GoalMap`); zero off the active facets.
+        active_tags: facet tags held to their goals by the penalty.
         material: Neo-Hookean soft tissue.
         penalty: k, kPa/mm, weight of the active-vertex penalty per unit area.
         solver: a key of `PRESETS`; any PETSc option can be overridden with
@@ -178,7 +204,7 @@ class Equilibrium:
             shifted or the previous solve needed more than lag_its iterations (default 30).
     """
 
-    def __init__(self, domain: Domain, blendshapes: np.ndarray, active_tags,
+    def __init__(self, domain: Domain, goals, active_tags,
                  material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
                  solver: str = "direct", options: dict | None = None,
                  prefix: str = "orthodiff_fwd_", method: str = "qn",
@@ -192,27 +218,29 @@ class Equilibrium:
             raise InputError(f"unknown solver preset {solver!r}; choose one of {list(PRESETS)}")
         if method not in METHODS:
             raise InputError(f"unknown method {method!r}; choose one of {list(METHODS)}")
-        if not (np.isfinite(penalty) and penalty > 0):
-            raise InputError(f"penalty k = {penalty} kPa/mm must be positive and finite")
+        penalty = check("penalty", penalty)
         t0 = time.perf_counter()
         self.domain, self.material, self.penalty = domain, material, penalty
         given = dict(xtol=xtol, max_it=max_it, lag_its=lag_its)
         for key, default in METHOD_DEFAULTS[method].items():
-            setattr(self, key, default if given[key] is None else given[key])
+            value = default if given[key] is None else given[key]
+            setattr(self, key, check(key, value) if key in OPTIONS else value)
         self.method, self.frtol, self.atol = method, frtol, atol
         V = domain.V
         self.u = dolfinx.fem.Function(V, name="displacement")
         self._uvec = compat.petsc_vec(self.u)
         self._x = self._uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
         self.goal = dolfinx.fem.Function(V, name="goal")
-        self.B = np.asarray(blendshapes, dtype=float)
+        self.goals = goals if hasattr(goals, "goal") else LinearGoals(goals)
         n_local = self.u.x.array.size
-        if self.B.ndim != 2 or self.B.shape[0] != n_local:
-            raise InputError(f"blendshapes must be ({n_local}, Np), got {self.B.shape}")
-        self.n_params = self.B.shape[1]
-        # owned vertices that carry a goal (checked after every Newton solve)
-        self._active = np.any(self.B.reshape(-1, 3, self.n_params)[:domain.n_owned] != 0,
-                              axis=(1, 2))
+        self.n_params = self.goals.n_params
+        shape = self.goals.jacobian(np.zeros(self.n_params)).shape
+        if shape != (n_local, self.n_params):
+            raise InputError(f"goal Jacobian must be ({n_local}, Np), got {shape}")
+        # owned vertices held to a goal (checked after every solve)
+        self._active = np.zeros(domain.n_owned, dtype=bool)
+        blocks = domain.facet_blocks(active_tags)
+        self._active[blocks[blocks < domain.n_owned]] = True
         v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
         F = ufl.Identity(3) + ufl.grad(self.u)
         ds = domain.ds()(tuple(active_tags), metadata={"quadrature_degree": quadrature_degree})
@@ -240,7 +268,8 @@ class Equilibrium:
         compat.assemble_matrix(G, self.forms["coupling"])
         G.assemble()
         self.dfdg = G
-        self.dfdp = self._coupling_times_blendshapes()
+        self._dfdp = [G.createVecLeft() for _ in range(self.n_params)]
+        self._dfdp_at = None   # the p of self._dfdp
         self.shift_max, self.shift_retry = shift_max, shift_retry
         self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
         self._step_shift = 0.0   # the shift of the last Newton step's matrix
@@ -260,7 +289,10 @@ class Equilibrium:
         self._stale_pc = False               # ... which slowed the last tangent solve
         self._pc_at_eq = False               # ... of K at the equilibrium, unshifted
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
-        self.solved_xtol = 0.0              # the xtol it was solved to, mm (rest: exact)
+        # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
+        # (else, e.g. a mandible held in an occlusion, rest is no equilibrium: inf)
+        moved = np.abs(self.goals.goal(self.p)).max(initial=0.0)
+        self.solved_xtol = 0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf
         self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
         self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
         self._K_ready = False
@@ -273,19 +305,22 @@ class Equilibrium:
         self.setup_time = time.perf_counter() - t0
 
     # ------------------------------------------------------------------ setup helpers
-    def _coupling_times_blendshapes(self) -> list:
-        """df/dp as Np PETSc vectors (df/dg) B_i. Active and Dirichlet vertices are disjoint
-        (checked by `Anatomy.validate`), so Dirichlet rows are already zero."""
-        out = []
-        g = compat.petsc_vec(self.goal).duplicate()
-        for i in range(self.n_params):
-            with g.localForm() as gl:
-                gl.array[:] = self.B[:, i]
-            y = self.dfdg.createVecLeft()
-            self.dfdg.mult(g, y)
-            out.append(y)
-        g.destroy()
-        return out
+    @property
+    def dfdp(self) -> list:
+        """df/dp at the equilibrium's p: Np PETSc vectors (df/dg) dg/dp_i, mN per unit,
+        recomputed when p has changed (and g is not linear). Active and Dirichlet vertices
+        are disjoint (checked by `Anatomy.validate`), so Dirichlet rows are zero."""
+        if self._dfdp_at is None or not (self.goals.linear
+                                         or np.array_equal(self._dfdp_at, self.p)):
+            J = self.goals.jacobian(self.p)
+            g = compat.petsc_vec(self.goal).duplicate()
+            for i, y in enumerate(self._dfdp):
+                with g.localForm() as gl:
+                    gl.array[:] = J[:, i]
+                self.dfdg.mult(g, y)
+            g.destroy()
+            self._dfdp_at = self.p.copy()
+        return self._dfdp
 
     def _set_near_nullspace(self):
         """Rigid-body modes (3 translations, 3 rotations) for GAMG."""
@@ -648,7 +683,7 @@ class Equilibrium:
             raise InputError(f"expected {self.n_params} parameters, got {p.size}")
         if not np.all(np.isfinite(p)):
             raise InputError(f"parameters must be finite, got {p.tolist()}")
-        self.goal.x.array[:] = self.B @ p
+        self.goal.x.array[:] = self.goals.goal(p)
         self._obj_val = None   # the energy depends on the goal
         return p
 
@@ -674,6 +709,7 @@ class Equilibrium:
         """
         p = np.asarray(p, dtype=float).reshape(-1)
         self.set_params(p)  # validates
+        max_bisections = check("max_bisections", max_bisections)
         self._stats = SolveStats()
         self._relaxing = False   # relax() pairs do not outlive a solve
         quick = quick and self.method != "newton"
@@ -734,10 +770,19 @@ class Equilibrium:
             self._pc_at_eq = False
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
-        if st.goal_error > GOAL_TOLERANCE_MM and self.domain.comm.rank == 0:
-            log.warning("active vertices end %.3f mm from their goals (> %g mm) at p = %s: "
-                        "the tissue resists (min det F = %.2g) or the penalty k is too soft",
-                        st.goal_error, GOAL_TOLERANCE_MM, np.round(p, 3).tolist(), st.min_det_F)
+        if st.goal_error > GOAL_TOLERANCE_MM:
+            st.warnings.append(
+                f"active vertices end {st.goal_error:.3f} mm from their goals (> "
+                f"{GOAL_TOLERANCE_MM:g} mm) at p = {np.round(p, 3).tolist()}: the tissue resists "
+                f"(min det F = {st.min_det_F:.2g}) or the penalty k is too soft")
+        if st.min_det_F < COMPRESSION_WARN:
+            st.warnings.append(
+                f"tissue compressed to {100 * st.min_det_F:.0f} % of its volume (min det F "
+                f"{st.min_det_F:.2f} < {COMPRESSION_WARN:g}): the treatment is beyond what the "
+                "soft tissue plausibly follows")
+        if self.domain.comm.rank == 0:
+            for w in st.warnings:
+                log.warning(w)
         st.total = time.perf_counter() - t0
         st.linear_solve = max(st.total - st.assemble, 0.0)
         self._stats = SolveStats()   # later tangent work must not change what was returned
@@ -749,14 +794,19 @@ class Equilibrium:
         else Newton goes on from its iterate where that is sound (finite, nothing inverted,
         bone not held back), else from the same start; when Newton fails, the diagonal
         shift is raised and it resumes. The residual tolerance is relative to the
-        load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start; with no
-        load (a refinement) only the step counts."""
+        load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start, and at
+        least `fem.limits.FRTOL_FLOOR` of the goals' whole load |df/dg g(p)| (a tiny step
+        cannot ask for a residual below roundoff); with no load (a refinement) only the step
+        counts."""
         self.set_params(p)
         self._shift = 0.0
         load = self._load(p - p_from)
+        total = load.duplicate()
+        self.dfdg.mult(compat.petsc_vec(self.goal), total)
         # no load: refining the current equilibrium to a tighter xtol, where only steps count
-        self._f_ref = load.norm() or np.inf
+        self._f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
         load.destroy()
+        total.destroy()
         self._uvec.copy(self._x)
         start = self._x.copy()
         try:
@@ -939,12 +989,13 @@ class Equilibrium:
         return out
 
     def _can_predict(self, p) -> bool:
-        """p differs from the equilibrium's and a factorisation (or dx/dp) is at hand, or
+        """p differs from the equilibrium's (a solved one: not a rest state whose goals are
+        not the rest) and a factorisation (or dx/dp) is at hand, or
         quasi-Newton would make one at the equilibrium first anyway (then it is made for the
         prediction and serves both)."""
         quasi_newton = self.method == "qn" and self.xtol >= QN_MIN_XTOL
-        return bool(np.any(p != self.p) and (self._pc_ready or self.has_sensitivity
-                                             or quasi_newton))
+        return bool(np.any(p != self.p) and np.isfinite(self.solved_xtol)
+                    and (self._pc_ready or self.has_sensitivity or quasi_newton))
 
     def first_order(self, p, follow: bool = False):
         """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None
@@ -1102,5 +1153,5 @@ class Equilibrium:
         self._invalidate()
         self._drop_qn_snes()
         for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self._obj_x, self._w, self._r, self.u_eq, self.dfdg, *self.dfdp]:
+                    self._x, self._obj_x, self._w, self._r, self.u_eq, self.dfdg, *self._dfdp]:
             obj.destroy()

@@ -114,3 +114,10 @@ def write_xdmf(path, mesh, functions=(), meshtags=(), node_displacement=None,
     finally:
         if node_displacement is not None:
             x[:, :3] -= node_displacement
+
+
+def write_text(path, text: str, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+    """Write ``text`` (the same on every rank) to ``path`` atomically (rank 0 writes)."""
+    def write(p):
+        Path(p).write_text(text)
+    _write_on_root(path, write, comm)

@@ -17,8 +17,8 @@ import logging
 import numpy as np
 
 from fem.equilibrium import PATH_ITERATIONS, PATH_SUBSTEP_MM
+from fem.limits import check
 from inverse.objective import Objective, point_sensitivity
-from meshes.errors import InputError
 
 #: Quasi-Newton steps per substep of a corrected prediction (BENCHMARKS.md: error and time),
 #: and the largest first-order vertex motion of a substep, mm: those of the solver's path
@@ -78,9 +78,8 @@ class SkinPredictor:
         No assembly of K, no refactorisation; the scene's equilibrium is unchanged. Where
         no path is found (every start of a short substep inverts an element), the plain
         prediction is returned. Collective."""
-        if not (iterations >= 1 and substep_mm > 0):
-            raise InputError(f"a corrected prediction needs iterations >= 1 and substep_mm > 0,"
-                             f" got {iterations} and {substep_mm}")
+        iterations = check("iterations", iterations)
+        substep_mm = check("substep_mm", substep_mm)
         dp = self.scene.param_vector(dp)
         step = self._u0.duplicate()   # first-order step to p0 + dp
         step.set(0.0)

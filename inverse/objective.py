@@ -22,6 +22,7 @@ import numpy as np
 
 from fem.domain import PointOperator
 from fem.equilibrium import Equilibrium
+from fem.limits import check
 from meshes.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -106,9 +107,7 @@ class Objective:
         w = np.ones(op.n_points) if weights is None else np.asarray(weights, dtype=float)
         if w.shape != (op.n_points,) or not np.all(np.isfinite(w)) or np.any(w < 0):
             raise InputError(f"weights must be {op.n_points} finite non-negative numbers")
-        if not (np.isfinite(tikhonov) and tikhonov >= 0):
-            raise InputError(f"Tikhonov weight {tikhonov} must be finite and >= 0")
-        self.weights, self.tikhonov = w, float(tikhonov)
+        self.weights, self.tikhonov = w, check("tikhonov", tikhonov)
 
     @property
     def n_points(self) -> int:

@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 
+from fem.limits import XTOL_FLOOR_MM, check
 from inverse.objective import Objective
 from inverse.treatment import FTOL
 from meshes.errors import InputError, SolverError
@@ -45,7 +46,7 @@ class PlanResult:
         objective, objective_initial: T at the end and at the start (mm²).
         converged: a stopping test was met (``reason`` says which); False on the iteration
             limit or a failed line search, which is reported, never raised.
-        history: one dict per iteration: iteration, T, mean_distance_mm, step, alpha, mu,
+        history: one dict per iteration: iteration, T, mean_distance_mm, params, step, alpha, mu,
             newton_iterations, forward_solves, time_s.
         gn_iterations, forward_solves: counts; timings: forward, adjoint, sensitivity,
             line_search, total.
@@ -107,6 +108,8 @@ def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iteratio
     ``callback(p, entry)`` is called at the start and after every accepted iteration with
     its history entry.
     """
+    ftol = check("ftol", ftol)
+    max_iterations = check("max_iterations", max_iterations)
     xtol_forward = scene.eq.xtol
     try:
         return _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol,
@@ -122,8 +125,9 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
     xtol_forward = eq.xtol
 
     def tighten(distance_mm: float):
-        """Forward solves to ftol x the mean landmark distance (or their own xtol)."""
-        eq.xtol = min(xtol_forward, ftol * distance_mm)
+        """Forward solves to ftol x the mean landmark distance (or their own xtol), not
+        below `fem.limits.XTOL_FLOOR_MM` (targets reached: a distance of 0)."""
+        eq.xtol = max(min(xtol_forward, ftol * distance_mm), XTOL_FLOOR_MM)
     n_p = eq.n_params
     p = np.zeros(n_p) if p0 is None else scene.param_vector(p0)
     p_init = p.copy()
@@ -149,7 +153,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
     T = T0 = objective.value()
     w3 = np.repeat(objective.weights, 3)
     history = [dict(iteration=0, T=T, mean_distance_mm=float(objective.distances().mean()),
-                    step=0.0, alpha=0.0, mu=mu, newton_iterations=newton,
+                    params=p.copy(), step=0.0, alpha=0.0, mu=mu, newton_iterations=newton,
                     forward_solves=forward_solves, time_s=time.perf_counter() - t_start)]
     _log(history[-1])
     if callback is not None:
@@ -201,7 +205,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         T = T_q
         mu = max(mu / 10, 1e-9) if alpha == 1.0 else max(4 * mu, 1e-3)
         history.append(dict(iteration=it, T=T, mean_distance_mm=float(
-            objective.distances().mean()), step=step, alpha=alpha, mu=mu,
+            objective.distances().mean()), params=p.copy(), step=step, alpha=alpha, mu=mu,
             newton_iterations=newton, forward_solves=forward_solves,
             time_s=time.perf_counter() - t_start))
         _log(history[-1])

@@ -29,8 +29,14 @@ class Scene:
 
     Args:
         anatomy: an `Anatomy` or a callable returning one (evaluated on rank 0 only).
-        treatment: parameters (default: six rigid motions per segment of the anatomy).
+        treatment: parameters (default: six exact rigid motions per segment and group of
+            the anatomy, `inverse.treatment.rigid_treatment`).
         params_used: optional subset of parameter names to keep, in order.
+        occlusion: "free" (default: the jaws move independently), "final" (the mandible is
+            held to the maxilla in the anatomy's final occlusion) or a 4×4 occlusion.
+            Every segment is held to its goal; one that no parameter moves stays put.
+        linear, groups: for the default treatment: the paper's linearised blendshapes instead
+            of exact rigid motions; with the group motions (maxilla.*, jaws.*).
         degree: Lagrange degree of the displacement, 1 (default) or 2.
         material, penalty (kPa/mm), solver (preset name), options (PETSc options), and
             ``newton`` (dict: xtol, frtol, max_it, ...): passed to `fem.equilibrium.Equilibrium`.
@@ -40,18 +46,29 @@ class Scene:
     resolution: str | None = None
 
     def __init__(self, anatomy, treatment: Treatment | None = None,
-                 params_used=None, material: NeoHookean = NeoHookean(),
+                 params_used=None, occlusion="free", linear: bool = False,
+                 groups: bool = True, material: NeoHookean = NeoHookean(),
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
                  options: dict | None = None, newton: dict | None = None,
                  degree: int = 1, comm: MPI.Comm = MPI.COMM_WORLD):
         t0 = time.perf_counter()
         self.domain = create_domain(anatomy, comm, degree=degree)
         self.timings = {"mesh": time.perf_counter() - t0}
-        treatment = treatment or rigid_treatment(tuple(self.domain.segments))
+        treatment = treatment or rigid_treatment(tuple(self.domain.segments), linear=linear,
+                                                 groups=groups)
+        if isinstance(occlusion, str) and occlusion == "final":
+            if self.domain.occlusion is None:
+                raise InputError(f"anatomy {self.domain.name!r} has no final occlusion (give "
+                                 "'occlusion' in its sidecar)")
+            occlusion = self.domain.occlusion
+        elif isinstance(occlusion, str) and occlusion != "free":
+            raise InputError(f"occlusion must be 'free', 'final' or a 4x4, got {occlusion!r}")
+        if not isinstance(occlusion, str):
+            treatment = treatment.with_occlusion(occlusion)
         self.treatment = treatment.subset(params_used) if params_used else treatment
         t0 = time.perf_counter()
-        self.eq = Equilibrium(self.domain, self.treatment.matrix(self.domain),
-                              [self.domain.segments[s] for s in self.treatment.active_segments],
+        self.eq = Equilibrium(self.domain, self.treatment.goal_map(self.domain),
+                              list(self.domain.segments.values()),
                               material=material, penalty=penalty, solver=solver,
                               options=options, **(newton or {}))
         self.timings["compile"] = time.perf_counter() - t0
@@ -90,6 +107,17 @@ class Scene:
         """Equilibrium at ``p`` (dict or (Np,)), warm-started from the current equilibrium.
         ``tangent``: an adjoint gradient follows (see `Equilibrium.solve`)."""
         return self.eq.solve(self.param_vector(p), tangent=tangent)
+
+    def transforms(self, p=None) -> dict:
+        """Rigid motion {segment: (4, 4)} of every bone segment at p (default: the current
+        equilibrium's), mm, scene frame."""
+        p = self.params if p is None else self.param_vector(p)
+        return self.treatment.transforms(p, self.domain.pivots)
+
+    def params_from_transforms(self, transforms: dict) -> np.ndarray:
+        """The parameters (Np,) that move the segments by ``transforms`` ({segment: 4×4};
+        unnamed segments stay put), see `Treatment.params_from_transforms`."""
+        return self.treatment.params_from_transforms(transforms, self.domain.pivots)
 
     def landmarks(self, names=None, rest: bool = False) -> dict[str, np.ndarray]:
         """Landmark positions {name: (3,)} mm, deformed (or rest). Collective."""

@@ -58,6 +58,8 @@ class Anatomy:
         pivots: segment name -> (3,) pivot of its rigid motions, mm.
         landmarks: landmark name -> `Landmark` on a skin facet.
         name: case name or source file, for reports.
+        occlusion: optional (4, 4) motion of the mandible relative to the maxilla that
+            brings the teeth into the final occlusion (`inverse.treatment`), scene frame.
     """
 
     points: np.ndarray
@@ -68,6 +70,7 @@ class Anatomy:
     pivots: dict[str, np.ndarray]
     landmarks: dict[str, Landmark]
     name: str = "anatomy"
+    occlusion: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -171,6 +174,8 @@ class Anatomy:
     def save(self, path: str | Path) -> None:
         """Write to ``path`` (.npz) atomically."""
         meta = {"segments": self.segments, "name": self.name,
+                "occlusion": None if self.occlusion is None else
+                np.asarray(self.occlusion).tolist(),
                 "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
                 "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
                               for k, v in self.landmarks.items()}}
@@ -193,7 +198,9 @@ class Anatomy:
                            pivots={k: np.array(v) for k, v in meta["pivots"].items()},
                            landmarks={k: Landmark(np.array(f), np.array(w))
                                       for k, (f, w) in meta["landmarks"].items()},
-                           name=meta["name"])
+                           name=meta["name"],
+                           occlusion=None if meta.get("occlusion") is None else
+                           np.array(meta["occlusion"], dtype=float))
         except (OSError, KeyError, ValueError) as e:
             raise MeshError(f"cannot read anatomy file {path}: {e}") from e
 

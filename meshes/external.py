@@ -9,6 +9,8 @@ Two paths, both ending in a validated `Anatomy`:
         "roles": {"skin": 1, "fixed": 2, "free_bone": 3, "rim": 4},   # file values
         "segments": {"mandible": 11, "maxilla_L": 12, "maxilla_R": 13},
         "pivots": {"mandible": [0, 55, -60]},     # optional, mm; default segment centroid
+        "occlusion": [[4x4]] or "occlusion.tfm", # optional: the final occlusion, the
+                                                 # mandible's motion relative to the maxilla
         "landmarks": {"Pg": [0, 101.7, -66], "Li": {"facet": [i, j, k], "weights": [a, b, c]}}}
 
    A landmark given as a point is projected onto the nearest skin facet; it must lie within
@@ -98,6 +100,17 @@ def _landmarks(spec: dict, points, facets, tags) -> dict:
     return out
 
 
+def _occlusion(value, sidecar: Path):
+    """The sidecar's occlusion: a 4×4, or a JSON/ITK file relative to the sidecar."""
+    from meshes.transforms import read_transform
+
+    if value is None:
+        return None
+    if isinstance(value, str):
+        value = sidecar.parent / value
+    return read_transform(value, f"the occlusion in {sidecar}")
+
+
 def load_tet_mesh(path, sidecar=None) -> Anatomy:
     """A tetrahedral mesh (meshio format) with a JSON sidecar naming tags and landmarks."""
     mesh = _read(path)
@@ -137,7 +150,8 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
     points = np.asarray(mesh.points, dtype=float)
     anatomy = Anatomy(points, np.concatenate(tets).astype(np.int64), facets, tags, segments,
                       {k: np.asarray(v, float) for k, v in spec.get("pivots", {}).items()},
-                      {}, name=Path(path).name)
+                      {}, name=Path(path).name,
+                      occlusion=_occlusion(spec.get("occlusion"), sidecar))
     anatomy.validate()
     anatomy.landmarks = _landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()

@@ -103,6 +103,18 @@ def _rot(axis, deg):
     return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
 
 
+def case_occlusion(case: Case) -> np.ndarray:
+    """The final occlusion of a case (4×4): the mandible's motion relative to the maxilla
+    that undoes the malocclusion, ``M_maxilla M_mandible⁻¹`` (M: the case's displacement of
+    each jaw from the neutral head), known exactly."""
+    M_mand, M_max = np.eye(4), np.eye(4)
+    R = _rot((0, 0, 1), case.mandible_yaw_deg)
+    M_mand[:3, :3] = R
+    M_mand[:3, 3] = MANDIBLE_PIVOT - R @ MANDIBLE_PIVOT + case.mandible_shift
+    M_max[:3, 3] = case.maxilla_shift
+    return M_max @ np.linalg.inv(M_mand)
+
+
 def _primitives(case: Case):
     """(bone ellipsoids with tissue thickness, extra skin ellipsoids, mandible transform)."""
     E = lambda c, r, R=np.eye(3): Ellipsoid(np.array(c, float), np.array(r, float), R)  # noqa
@@ -227,7 +239,7 @@ def build(case_name: str, resolution: str) -> Anatomy:
         landmarks[name] = Landmark(facets[skin_idx[hit[0]]], hit[1])
     _check_volume(case, points, cells, case_name)
     anatomy = Anatomy(points, cells, facets, tags, segments, {}, landmarks,
-                      name=f"{case_name}/{resolution}")
+                      name=f"{case_name}/{resolution}", occlusion=case_occlusion(case))
     anatomy.validate()
     # pivots: the centroid of each segment's rest bone vertices
     anatomy.pivots = {s: points[anatomy.segment_vertices(s)].mean(axis=0) for s in segments}
@@ -276,7 +288,9 @@ def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -
     path = cache_dir() / f"{case_name}-{resolution}-{key}.npz"
     if path.exists():
         try:
-            return Anatomy.load(path)
+            anatomy = Anatomy.load(path)
+            anatomy.occlusion = case_occlusion(case)   # from the case, not the cache
+            return anatomy
         except MeshError:
             log.warning("cached mesh %s is unreadable; regenerating", path)
     log.info("generating %s/%s (h = %.1f mm) into %s", case_name, resolution, h, path)

@@ -16,6 +16,12 @@ def parse(ap, argv=None):
     bad = [a for a in rest if a.startswith("--")]
     if bad:
         ap.error(f"unrecognised arguments: {' '.join(bad)}")
+    from meshes.errors import InputError
+
+    try:
+        check_options(args)
+    except InputError as e:   # before any work, on every rank alike
+        _one_line_error(str(e))
     import petsc4py
 
     petsc4py.init([sys.argv[0], *rest])
@@ -36,6 +42,47 @@ def parse(ap, argv=None):
     return args, comm
 
 
+#: Numeric options checked by `check_options`: attribute -> `fem.limits.OPTIONS` key.
+CHECKED = {"ftol": "ftol", "max_iterations": "max_iterations", "tikhonov": "tikhonov",
+           "penalty": "penalty", "substep_mm": "substep_mm", "iterations": "iterations",
+           "port": "port"}
+#: Comma-separated list options that must name at least one item when given: what an item is.
+LISTS = {"params_used": "parameter", "landmarks": "landmark", "scales": "scale"}
+
+
+def names_list(text: str) -> list[str]:
+    """Items of a comma-separated option, stripped, empty ones dropped."""
+    return [s.strip() for s in text.split(",") if s.strip()]
+
+
+def check_options(args) -> None:
+    """Every option of a script in its range (`fem.limits`), lists not empty: `InputError`
+    naming the option and the range otherwise."""
+    from fem.limits import check
+    from meshes.errors import InputError
+
+    for attr, key in CHECKED.items():   # given as text: check() converts
+        value = getattr(args, attr, None)
+        if value is not None:
+            setattr(args, attr, check(key, value, "--" + attr.replace("_", "-")))
+    for attr, item in LISTS.items():
+        value = getattr(args, attr, None)
+        if value is not None and not names_list(value):
+            raise InputError(f"--{attr.replace('_', '-')} must name at least one {item}, got "
+                             f"{value!r}")
+    for item in names_list(getattr(args, "scales", None) or ""):
+        check("scale", item, "--scales")
+
+
+def _one_line_error(message: str):
+    """An option error as one line (rank 0), exit code 2: for argparse and `check_options`."""
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.rank == 0:
+        print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def scene_parser(doc: str, plan: bool = False, params: str | None = None):
     """An argument parser with the scene options (`add_scene_args`); with ``params`` (what
     the parameters are, for the help), also ``--params FILE`` and ``--p NAME=VALUE ...``,
@@ -44,6 +91,7 @@ def scene_parser(doc: str, plan: bool = False, params: str | None = None):
 
     ap = argparse.ArgumentParser(description=doc,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.error = _one_line_error
     add_scene_args(ap, plan)
     if params:
         ap.add_argument("--params", help=f"JSON file {{name: value}}: {params}")
@@ -53,33 +101,51 @@ def scene_parser(doc: str, plan: bool = False, params: str | None = None):
 
 
 def add_scene_args(ap, plan: bool = False):
-    """Scene options; for planning, ``--params-used`` defaults to `PLAN_PARAMS`."""
-    from inverse.treatment import PLAN_PARAMS
+    """Scene options; for planning, ``--params-used`` defaults to `PLAN_PARAMS` (occlusion
+    free) or `JAWS_PARAMS` (final occlusion)."""
     from meshes.synthetic import CASES, RESOLUTIONS
 
     ap.add_argument("--case", default="class3-asym", help=f"one of {sorted(CASES)}")
     ap.add_argument("--resolution", default="coarse", help=f"one of {list(RESOLUTIONS)}")
     ap.add_argument("--mesh", help="tetrahedral mesh file with a JSON sidecar (see README) "
                     "instead of a built-in case")
-    ap.add_argument("--params-used", default=",".join(PLAN_PARAMS) if plan else None,
-                    help="comma-separated subset of parameter names")
+    ap.add_argument("--params-used", default=None,
+                    help="comma-separated subset of parameter names" + (
+                        " (default: the mandible's six motions and the maxilla's advance, "
+                        "vertical, roll and yaw with --occlusion free; the six jaws.* motions "
+                        "with --occlusion final)" if plan else ""))
+    ap.add_argument("--occlusion", default="free", choices=("free", "final"),
+                    help="free: maxilla and mandible move independently; final: the mandible "
+                    "is held to the maxilla in the anatomy's final occlusion and both move as "
+                    "one unit (the jaws.* motions)")
+    ap.add_argument("--treatment", default="rigid", choices=("rigid", "linear"),
+                    help="rigid: exact rigid motions (default); linear: the paper's "
+                    "linearised blendshapes of the same names")
     ap.add_argument("--solver", default="direct", help="linear solver preset: direct, cholmod, "
                     "gamg")
     ap.add_argument("--method", default="qn", choices=("qn", "newton"),
                     help="nonlinear method: quasi-Newton on a kept factorisation (default) "
                     "or Newton (a factorisation per step)")
-    ap.add_argument("--penalty", type=float, default=None, help="active penalty k, kPa/mm")
+    ap.add_argument("--penalty", default=None, help="active penalty k, kPa/mm")
     ap.add_argument("--degree", type=int, default=1, choices=(1, 2),
                     help="Lagrange degree of the displacement (P2: ~7x the dofs, see BENCHMARKS)")
 
 
-def scene_from_args(args, comm):
+def scene_from_args(args, comm, plan: bool = False, groups: bool = True):
+    """The `Scene` the options describe. ``plan``: the planning defaults of
+    ``--params-used``; ``groups=False``: without group motions (maxilla.*, jaws.*) unless
+    named, so that each segment's motion has one set of parameters."""
     from inverse.scene import Scene
+    from inverse.treatment import JAWS_PARAMS, PLAN_PARAMS
 
     kw = {"solver": args.solver, "comm": comm, "degree": args.degree,
-          "newton": {"method": args.method}}
-    if args.params_used:
-        kw["params_used"] = [s.strip() for s in args.params_used.split(",") if s.strip()]
+          "newton": {"method": args.method}, "occlusion": args.occlusion,
+          "linear": args.treatment == "linear", "groups": groups}
+    if args.params_used is not None:
+        kw["params_used"] = names_list(args.params_used)
+        kw["groups"] = True
+    elif plan:
+        kw["params_used"] = JAWS_PARAMS if args.occlusion == "final" else PLAN_PARAMS
     if args.penalty is not None:
         kw["penalty"] = args.penalty
     if args.mesh:
@@ -87,6 +153,36 @@ def scene_from_args(args, comm):
 
         return Scene(lambda: load_tet_mesh(args.mesh), **kw)
     return Scene.from_case(args.case, args.resolution, **kw)
+
+
+def warn_bounds(scene, p, comm) -> list[str]:
+    """Warn (rank 0) of each parameter of p outside its feasible bounds; the messages."""
+    import logging
+
+    warnings = scene.treatment.outside_bounds(p)
+    if comm.rank == 0:
+        for w in warnings:
+            logging.getLogger("orthodiff").warning(w)
+    return warnings
+
+
+def transforms_report(scene) -> dict:
+    """Report keys of the current equilibrium's bone motions: ``transforms`` {segment: 4×4}
+    and ``occlusion`` (4×4, or None when the jaws are free)."""
+    occ = scene.treatment.occlusion
+    return {"transforms": scene.transforms(),
+            "occlusion": None if occ is None else occ}
+
+
+def write_transforms(scene, out_dir, comm) -> None:
+    """One ITK transform file ``<segment>.tfm`` per segment into ``out_dir`` (3D Slicer)."""
+    from pathlib import Path
+
+    from fem.io import write_text
+    from meshes.transforms import itk_text
+
+    for seg, T in scene.transforms().items():
+        write_text(Path(out_dir) / f"{seg}.tfm", itk_text(T), comm)
 
 
 def peak_rss_mb(comm) -> float:

@@ -6,6 +6,7 @@
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
+    python3 scripts/bench.py plausibility [--resolutions coarse,paper] [--cases class1]
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
 and a PNG under ``docs/``: ``mesh`` (tiny to fine, finest as reference: landmark error and the
@@ -760,8 +761,22 @@ def main():
     a.add_argument("--resolutions-p1", default="tiny,coarse,medium,paper")
     a.add_argument("--resolutions-p2", default="tiny,coarse,medium",
                    help="order part; the last P2 level is the reference")
+    pp = sub.add_parser("plausibility", help="soft-to-hard movement ratios against the "
+                        "clinical literature")
+    pp.add_argument("--resolutions", default="coarse,paper")
+    pp.add_argument("--cases", default=None, help="comma-separated (default: all)")
     args = ap.parse_args()
-    {"forward": forward, "plan": plan, "stress": stress, "accuracy": accuracy}[args.what](args)
+    {"forward": forward, "plan": plan, "stress": stress, "accuracy": accuracy,
+     "plausibility": plausibility}[args.what](args)
+
+
+def plausibility(args) -> None:
+    """Soft-to-hard movement ratios (`scripts/bench_plausibility.py`)."""
+    sys.path.insert(0, str(ROOT))
+    from scripts import bench_plausibility
+
+    bench_plausibility.plausibility(args, _simulate, lambda t, a: _header(t, a), _table,
+                                    _write_section)
 
 
 if __name__ == "__main__":

@@ -3,9 +3,12 @@
 
 A class III face with the chin deviated to the right; the clinical goal (Arnett's true
 vertical line through Sn, the chin and lips on the mid-sagittal plane, Sn and tragion kept:
-7 landmarks, `inverse.targets`); the Sparse Gauss-Newton plan from p = 0; the landmark table
-before and after, the parameters found and the timings. Writes ``out/demo/deformed.xdmf``
-(open in ParaView), ``out/demo/displacement.xdmf`` and ``out/demo/report.json``.
+7 landmarks, `inverse.targets`); the Sparse Gauss-Newton plan from p = 0, planned the way a
+surgeon plans: the mandible held to the maxilla in the final occlusion and both moved as
+one unit (``--occlusion final``, the six ``jaws.*`` motions); the landmark table before and
+after, the parameters found and the timings. Writes ``out/demo/deformed.xdmf`` (open in
+ParaView), ``out/demo/displacement.xdmf``, ``out/demo/report.json`` and one
+``out/demo/<segment>.tfm`` per segment (3D Slicer).
 Extra arguments go to scripts/plan.py (e.g. ``--resolution paper``).
 """
 
@@ -17,6 +20,7 @@ from scripts import plan  # noqa: E402
 from scripts._common import run_main  # noqa: E402
 
 if __name__ == "__main__":
-    args = ["--case", "class3-asym", "--resolution", "coarse", "--out", "out/demo",
+    args = ["--case", "class3-asym", "--resolution", "coarse", "--occlusion", "final",
+            "--out", "out/demo",
             "--report", "out/demo/report.json", *sys.argv[1:]]
     sys.exit(run_main(lambda: plan.main(args)))

@@ -23,10 +23,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
     load_params,
+    names_list,
     parse,
     run_main,
     scene_from_args,
     scene_parser,
+    warn_bounds,
 )
 
 
@@ -35,10 +37,10 @@ def main(argv=None):
     ap.add_argument("--dp", nargs="*", default=[], metavar="NAME=VALUE",
                     help="a change of the treatment to predict")
     ap.add_argument("--scales", default="1", help="comma-separated multiples of dp")
-    ap.add_argument("--iterations", type=int, default=None,
+    ap.add_argument("--iterations", default=None,
                     help="quasi-Newton steps per substep of the corrected prediction "
                          "(default inverse.explore.CORRECTION_ITERATIONS)")
-    ap.add_argument("--substep-mm", type=float, default=None,
+    ap.add_argument("--substep-mm", default=None,
                     help="largest first-order vertex motion of a substep of the corrected "
                          "prediction, mm (default inverse.explore.CORRECTION_SUBSTEP_MM)")
     ap.add_argument("--compare", action="store_true", help="solve the true equilibria")
@@ -49,16 +51,15 @@ def main(argv=None):
 
     from fem.io import write_json
     from inverse.explore import CORRECTION_ITERATIONS, CORRECTION_SUBSTEP_MM, SkinPredictor
-    from meshes.errors import InputError
 
     t0 = time.perf_counter()
     scene = scene_from_args(args, comm)
     p0 = scene.param_vector(load_params(args.params, args.p, scene))
     dp = scene.param_vector(load_params(None, args.dp, scene))
-    try:
-        scales = [float(s) for s in args.scales.split(",")]
-    except ValueError:
-        raise InputError(f"--scales must be numbers, got {args.scales!r}") from None
+    scales = [float(s) for s in names_list(args.scales)]   # checked by parse()
+    warnings = warn_bounds(scene, p0, comm)
+    for s in scales:
+        warnings += warn_bounds(scene, p0 + s * dp, comm)
     t = time.perf_counter()
     scene.solve(p0)
     t_forward = time.perf_counter() - t
@@ -104,7 +105,7 @@ def main(argv=None):
               "degree": scene.domain.degree, "n_vertices": scene.domain.n_vertices,
               "n_ranks": comm.size,
               "n_skin_vertices": len(pred.vertices), "param_names": scene.param_names,
-              "p0": p0, "predictions": rows,
+              "p0": p0, "predictions": rows, "warnings": warnings,
               "timings_s": {"forward": t_forward, "sensitivity": t_sens,
                             "total": time.perf_counter() - t0}}
     if args.report:

@@ -7,7 +7,11 @@
 
 Targets default to the case's clinical goal (`inverse.targets`). Parameters default to
 `inverse.treatment.PLAN_PARAMS` (mandible: all six motions; maxilla en bloc: advance,
-vertical, cant and yaw). The report has the keys listed in README.md.
+vertical, cant and yaw) with ``--occlusion free``, and to the six motions of the
+maxillomandibular complex `inverse.treatment.JAWS_PARAMS` with ``--occlusion final`` (the
+mandible held to the maxilla in the final occlusion). The report has the keys listed in
+README.md, with ``transforms`` (segment -> 4x4) and ``occlusion``; ``--out`` also gets one
+ITK ``<segment>.tfm`` per segment.
 """
 
 from __future__ import annotations
@@ -16,7 +20,15 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from scripts._common import parse, run_main, scene_from_args, scene_parser  # noqa: E402
+from scripts._common import (  # noqa: E402
+    names_list,
+    parse,
+    run_main,
+    scene_from_args,
+    scene_parser,
+    transforms_report,
+    write_transforms,
+)
 
 
 def plan_report(scene, result, targets, before, comm) -> dict:
@@ -42,6 +54,7 @@ def plan_report(scene, result, targets, before, comm) -> dict:
         "gn_iterations": result.gn_iterations, "forward_solves": result.forward_solves,
         "converged": result.converged, "stop_reason": result.reason,
         "history": result.history, "timings_s": result.timings,
+        **transforms_report(scene),
     }
 
 
@@ -80,12 +93,12 @@ def main(argv=None):
     ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm (default: the case's "
                     "clinical goal)")
     ap.add_argument("--landmarks", help="comma-separated subset of the targets to use")
-    ap.add_argument("--tikhonov", type=float, default=TIKHONOV,
+    ap.add_argument("--tikhonov", default=TIKHONOV,
                     help="α of ½α|p|², mm² per unit²: prefers small movements where the "
                     "landmarks do not decide")
-    ap.add_argument("--ftol", type=float, default=FTOL,
+    ap.add_argument("--ftol", default=FTOL,
                     help="stop when T decreases by less than this fraction in an iteration")
-    ap.add_argument("--max-iterations", type=int, default=20)
+    ap.add_argument("--max-iterations", default=20)
     ap.add_argument("--checkpoint", help="JSON file rewritten (atomically) after every "
                     "Gauss-Newton iteration with p and the history (default: next to --report)")
     ap.add_argument("--resume", action="store_true",
@@ -100,10 +113,9 @@ def main(argv=None):
     from fem.io import write_json
 
     t0 = time.perf_counter()
-    scene = scene_from_args(args, comm)
+    scene = scene_from_args(args, comm, plan=True)
     targets = args.targets or scene.default_targets()
-    names = [s.strip() for s in args.landmarks.split(",") if s.strip()] \
-        if args.landmarks is not None else None
+    names = names_list(args.landmarks) if args.landmarks is not None else None
     obj = scene.objective(targets, names, tikhonov=args.tikhonov)
     names = obj.names
     targets = dict(zip(names, obj.targets.tolist()))
@@ -115,7 +127,8 @@ def main(argv=None):
                            "resolution": scene.resolution, "degree": scene.domain.degree,
                            "n_vertices": scene.domain.n_vertices,
                            "param_names": scene.param_names, "targets": targets,
-                           "tikhonov": args.tikhonov},
+                           "tikhonov": args.tikhonov, "occlusion": args.occlusion,
+                           "treatment": args.treatment},
              "params_initial": np.zeros(len(scene.param_names)), "before": before,
              "params": None, "history": []}
     if args.resume:
@@ -144,6 +157,7 @@ def main(argv=None):
                                compile=scene.timings["compile"])
     if args.out:
         scene.write(args.out)
+        write_transforms(scene, args.out, comm)
     report["timings_s"]["total"] = time.perf_counter() - t0
     if args.report:
         write_json(args.report, report, comm)

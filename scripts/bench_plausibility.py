@@ -1,0 +1,68 @@
+"""``bench.py plausibility``: soft-to-hard movement ratios of the synthetic faces against the
+clinical literature (issue 15 §4).
+
+For every case and resolution, two treatments from rest, each a fresh ``scripts/simulate.py``:
+a 5 mm BSSO advance (``mandible.advance_mm``) and a 5 mm LeFort I advance en bloc
+(``maxilla.advance_mm``). A ratio is the landmark's forward (+y) motion over the bone's 5 mm
+(a translation: incisors, B and A points, bony pogonion all move 5 mm); the nasal tip's
+elevation (+z) is reported beside its forward ratio.
+"""
+
+from __future__ import annotations
+
+#: (treatment parameter, landmark, axis, published range, source)
+RATIOS = [
+    ("mandible.advance_mm", "Pg", 1, (0.9, 1.0), "Joss et al. 2010 (review)"),
+    ("mandible.advance_mm", "Li", 1, (0.6, 0.9), "Joss et al. 2010; Lee et al. 2018: 66 %"),
+    ("maxilla.advance_mm", "Sn", 1, (0.5, 0.9), "San Miguel Moragas et al. 2014 (review)"),
+    ("maxilla.advance_mm", "Ls", 1, (0.2, 0.9), "San Miguel Moragas 2014; Lee 2018: 21 %"),
+    ("maxilla.advance_mm", "Prn", 1, (0.13, 0.33), "Lee et al. 2018: 17 %"),
+    ("maxilla.advance_mm", "Prn", 2, None, "little elevation"),
+]
+MOVE_MM = 5.0
+
+
+def ratios(simulate, case: str, res: str) -> dict:
+    """{(param, landmark, axis): ratio} from two simulate.py runs (``simulate(args)``)."""
+    import numpy as np
+
+    out = {}
+    for param in dict.fromkeys(r[0] for r in RATIOS):
+        rep = simulate(["--case", case, "--resolution", res, "--params-used",
+                        "mandible.advance_mm,maxilla.advance_mm", "--p",
+                        f"{param}={MOVE_MM}"])
+        if "error" in rep:
+            raise SystemExit(f"{case}/{res} {param}: {rep['error']}")
+        for p, lm, axis, _, _ in RATIOS:
+            if p == param:
+                d = np.subtract(rep["landmarks"][lm], rep["landmarks_rest"][lm])
+                out[(p, lm, axis)] = float(d[axis] / MOVE_MM)
+    return out
+
+
+def plausibility(args, simulate, header, table, write_section) -> None:
+    from meshes.synthetic import CASES, GENERATOR_VERSION
+
+    cases = args.cases.split(",") if args.cases else sorted(CASES)
+    head = ["treatment", "landmark", "published", "source"]
+    cols, rows = [], {i: [] for i in range(len(RATIOS))}
+    for res in args.resolutions.split(","):
+        for case in cases:
+            cols.append(f"{case} {res}")
+            r = ratios(lambda a: simulate(res, "direct", 1, args=a), case, res)
+            for i, (p, lm, axis, rng, _) in enumerate(RATIOS):
+                v = r[(p, lm, axis)]
+                ok = rng is None or rng[0] <= v <= rng[1]
+                rows[i].append(f"{v:.2f}" if ok else f"**{v:.2f}** ✗")
+            print(res, case, {k: round(v, 2) for k, v in r.items()}, flush=True)
+    body = header("Plausibility: soft-to-hard movement ratios (synthetic faces)", args) + [
+        f"Each column: a 5 mm BSSO advance (`mandible.advance_mm=5`) and a 5 mm LeFort I "
+        f"advance (`maxilla.advance_mm=5`) from rest, one `scripts/simulate.py` each; a "
+        f"ratio is the soft-tissue landmark's forward motion over the bone's 5 mm (the "
+        f"nasal tip's elevation on the last row). Generator version {GENERATOR_VERSION}. ✗: "
+        f"outside the published range.", ""]
+    body += table(head + cols, [
+        [p.split(".")[0] + (" advance"), lm + (" up" if axis == 2 else " fwd"),
+         "—" if rng is None else f"{rng[0]:g}–{rng[1]:g}", src, *rows[i]]
+        for i, (p, lm, axis, rng, src) in enumerate(RATIOS)])
+    write_section("plausibility", "\n".join(body))

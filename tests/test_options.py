@@ -1,0 +1,115 @@
+"""Every option validated at the edge (one line, exit code 2, nothing written); treatments
+beyond their bounds and compressed tissue are reported; no input makes a run unbounded."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_scripts import PLAN, ROOT, SIM, _run
+
+from meshes.errors import InputError
+
+EXPLORE = [sys.executable, str(ROOT / "scripts" / "explore.py"), "--case", "class3",
+           "--resolution", "tiny"]
+SCRIPTS = {"plan": PLAN, "sim": SIM, "explore": EXPLORE}
+
+
+@pytest.mark.parametrize("script,args,match", [
+    ("plan", ["--ftol", "-1"], "--ftol must be a finite number in (0, 1)"),
+    ("plan", ["--ftol", "1"], "--ftol must be a finite number in (0, 1)"),
+    ("plan", ["--ftol", "nan"], "--ftol must be"),
+    ("plan", ["--max-iterations", "-3"], "--max-iterations must be an integer in [1, 1000]"),
+    ("plan", ["--params-used", ",,"], "--params-used must name at least one parameter"),
+    ("plan", ["--landmarks", " , "], "--landmarks must name at least one landmark"),
+    ("plan", ["--tikhonov", "-0.5"], "--tikhonov must be a finite number in [0, 1e+06]"),
+    ("plan", ["--tikhonov", "inf"], "--tikhonov must be"),
+    ("sim", ["--penalty", "0"], "--penalty must be a finite number in (0, 1e+12]"),
+    ("sim", ["--penalty", "nan"], "--penalty must be"),
+    ("explore", ["--substep-mm", "0"], "--substep-mm must be a number in (0, inf]"),
+    ("explore", ["--iterations", "0"], "--iterations must be an integer in [1, 100]"),
+    ("explore", ["--scales", "1,nan"], "--scales must be a finite number"),
+    ("explore", ["--scales", ","], "--scales must name at least one scale"),
+    ("explore", ["--dp", "mandible.advance_mm=inf"], "finite"),
+])
+def test_bad_options_get_one_line_and_exit_2(tmp_path, script, args, match):
+    out = tmp_path / "out"
+    r = _run(SCRIPTS[script] + args + ["--out", str(out), "--report", str(out / "r.json")])
+    assert r.returncode == 2, r.stderr[-2000:]
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and match in errors[0], r.stderr[-2000:]
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path):
+    """simulate.py --p mandible.advance_mm=40 (bound 15): both warnings, on stderr and in
+    the report."""
+    rep = tmp_path / "r.json"
+    r = _run(SIM + ["--p", "mandible.advance_mm=40", "--report", str(rep)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    warnings = json.loads(rep.read_text())["warnings"]
+    assert any("mandible.advance_mm = 40 mm is outside its feasible range [-15, 15]" in w
+               for w in warnings), warnings
+    assert any(w.startswith("tissue compressed to 3") for w in warnings), warnings
+    for w in warnings:
+        assert w in r.stderr
+
+
+def test_the_python_api_refuses_the_same_values(mandible_scene):
+    from inverse.explore import SkinPredictor
+    from inverse.planner import gauss_newton
+    from inverse.scene import Scene
+
+    obj = mandible_scene.objective({"Pg": mandible_scene.landmarks(["Pg"])["Pg"].tolist()})
+    for kw, match in [({"ftol": -1.0}, "ftol must be"), ({"max_iterations": 0},
+                                                         "max_iterations must be"),
+                      ({"ftol": float("nan")}, "ftol must be")]:
+        with pytest.raises(InputError, match=match):
+            gauss_newton(mandible_scene, obj, **kw)
+    with pytest.raises(InputError, match="tikhonov must be"):
+        mandible_scene.objective({"Pg": mandible_scene.landmarks(["Pg"])["Pg"].tolist()},
+                                 tikhonov=-1.0)
+    with pytest.raises(InputError, match="max_bisections must be"):
+        mandible_scene.eq.solve(np.ones(6), max_bisections=-1)
+    with pytest.raises(InputError, match="substep_mm must be"):
+        SkinPredictor(mandible_scene).corrected(np.zeros(6), substep_mm=0.0)
+    from meshes.synthetic import synthetic_head
+
+    for kw, match in [({"penalty": -5.0}, "penalty must be"),
+                      ({"newton": {"xtol": -1.0}}, "xtol must be"),
+                      ({"newton": {"xtol": 0.0}}, "xtol must be"),
+                      ({"newton": {"max_it": 10 ** 6}}, "max_it must be")]:
+        with pytest.raises(InputError, match=match):
+            Scene(synthetic_head("class3", "tiny"), params_used=["mandible.advance_mm"], **kw)
+
+
+#: Each drawn run must end within this (s): a tiny scene's plan takes ~5-10 s.
+RUN_BOUND_S = 120
+NUMBERS = st.one_of(st.sampled_from(["-1", "0", "1e-12", "1", "nan", "inf", "-inf", "abc",
+                                     "1e9", "3"]),
+                    st.floats(-1e3, 1e3).map(lambda v: f"{v:.3g}"))
+OPTIONS = {"plan": ["--ftol", "--tikhonov", "--max-iterations", "--penalty"],
+           "sim": ["--penalty", "--p"]}
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(st.sampled_from(sorted(OPTIONS)), st.data())
+def test_no_option_makes_a_run_unbounded(script, data):
+    """Options drawn from valid, boundary and invalid values: every run finishes within
+    `RUN_BOUND_S` (exit 0) or exits 2 with one line; none hangs."""
+    args = []
+    for flag in data.draw(st.lists(st.sampled_from(OPTIONS[script]), min_size=1, max_size=3,
+                                   unique=True)):
+        value = data.draw(NUMBERS)
+        if flag == "--p":
+            flag, value = "--p", f"mandible.advance_mm={value}"
+        args += [flag, value]
+    if script == "plan":
+        args += ["--max-iterations", "2"] if "--max-iterations" not in args else []
+    r = _run(SCRIPTS[script] + args, timeout=RUN_BOUND_S)
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert r.returncode in (0, 2), (args, r.stderr[-2000:])
+    if r.returncode == 2:
+        assert len(errors) == 1, (args, r.stderr[-2000:])
