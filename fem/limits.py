@@ -27,6 +27,10 @@ XTOL_FLOOR_MM = 1e-10
 #: step of 1e-8 in p (a plan's last Gauss-Newton step on exactly reachable targets) otherwise
 #: asked for a residual below roundoff, and Newton ran out of iterations at every bisection.
 FRTOL_FLOOR = 1e-12
+#: Smallest relative decrease of T a plan may stop at. A plan's forward solves go to ftol ×
+#: the mean landmark distance (floored at `XTOL_FLOOR_MM`): with ftol = 2.5e-184 a tiny plan
+#: ran Newton to 1e-10 mm in every trial and crept on for over a minute.
+FTOL_FLOOR = 1e-12
 #: Most iterations of one SNES solve a user may ask for (defaults: quasi-Newton 40, Newton 25).
 MAX_SNES_ITERATIONS = 1000
 #: Most bisections of the step in p in one solve (default 6: 1/64 of the step).
@@ -66,7 +70,7 @@ class Range:
 
 #: The options (script flag names without dashes, Python keywords alike).
 OPTIONS = {
-    "ftol": Range(0.0, 1.0, open_lo=True, open_hi=True),       # relative decrease of T
+    "ftol": Range(FTOL_FLOOR, 1.0, open_hi=True),               # relative decrease of T
     "max_iterations": Range(1, MAX_PLAN_ITERATIONS, integer=True),
     "tikhonov": Range(0.0, 1e6),                                # α, mm² per unit²
     "penalty": Range(0.0, 1e12, open_lo=True),    # k, kPa/mm (the stress sweep: 1e6 × 5e4)

@@ -50,8 +50,14 @@ from meshes.errors import InputError, MeshError
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 2
-Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM, SPLIT_MM = -6.0, -38.0, 20.0, 10.0, 15.0
+GENERATOR_VERSION = 3
+Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM, SPLIT_MM = -15.0, -38.0, 20.0, 10.0, 15.0
+#: Z_LEFORT: the LeFort I cut runs below the piriform rim, 4 mm above subnasale (z = -19),
+#: so the nose sits on bone that does not move. With the cut at -6 mm (through the nasal
+#: base) a 5 mm LeFort I advance brought the nasal tip 0.42 of it forward and 0.69 up
+#: (published: 0.13-0.33 forward, little elevation); at -15 mm: 0.20 forward, 0.36 up,
+#: subnasale 0.57, upper lip 0.62 (class1, coarse; BENCHMARKS.md, plausibility). At -18 mm
+#: subnasale fell to 0.48, below its published 0.5-0.9.
 Y_MASK, Z_MASK = -12.0, 50.0
 #: Target edge length (mm) per resolution; vertex counts are measured in BENCHMARKS.md.
 RESOLUTIONS = {"tiny": 8.0, "coarse": 5.5, "medium": 4.0, "paper": 2.3, "fine": 1.4}

@@ -426,8 +426,11 @@ def test_transforms_and_occlusion_same_on_1_and_2_ranks(tmp_path):
         r = _run(_mpirun(n) + SIM_ALL + ["--case", "class3", "--transforms", str(tf),
                                          "--report", str(sim)])
         assert r.returncode == 0, r.stderr[-2000:]
-        r = _run(_mpirun(n) + PLAN + ["--occlusion", "final", "--max-iterations", "2",
-                                      "--report", str(plan)])
+        # a converged plan: after 2 iterations of class3-asym, where quick trials fail,
+        # a 2-rank run (MUMPS's pivots vary from run to run) once took another path
+        r = _run(_mpirun(n) + PLAN[:2] + ["--case", "class2", "--resolution", "tiny",
+                                          "--occlusion", "final", "--ftol", "1e-8",
+                                          "--report", str(plan)])
         assert r.returncode == 0, r.stderr[-2000:]
         reports[n] = [json.loads(f.read_text()) for f in (sim, plan)]
     for a, b in zip(reports[1], reports[2]):
