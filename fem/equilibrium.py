@@ -967,17 +967,29 @@ class Equilibrium:
         """(df/dp)ᵀ λ, shape (Np,) (collective). With λ = K⁻¹ ∂T/∂x, dT/dp = -(df/dp)ᵀ λ."""
         return np.array([g.dot(lam) for g in self.dfdp])
 
-    def tangent_step(self, dp) -> PETSc.Vec:
+    def _goal_load(self, p) -> PETSc.Vec:
+        """-(df/dg) (g(p) - g(p0)) as a new vector, mN: the exact load of moving the goals
+        from the equilibrium's p0 to p (for linear goals, the tangent load -df/dp dp)."""
+        dg = compat.petsc_vec(self.goal).duplicate()
+        with dg.localForm() as gl:
+            gl.array[:] = self.goals.goal(self.p) - self.goals.goal(p)
+        out = self.dfdg.createVecLeft()
+        self.dfdg.mult(dg, out)
+        dg.destroy()
+        return out
+
+    def tangent_step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
         """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
         tangent solve; with no factorisation yet, one is made at the equilibrium, and a
-        Cholesky factor of K there is applied once (no K assembled, no CG)."""
+        Cholesky factor of K there is applied once (no K assembled, no CG). ``rhs``: the
+        load to respond to instead of -df/dp dp (e.g. `_goal_load`; consumed)."""
         dp = np.asarray(dp, dtype=float)
         out = self.u_eq.duplicate()
         out.set(0.0)
-        if self.has_sensitivity:
+        if self.has_sensitivity and rhs is None:
             out.maxpy(dp, self._sens)
             return out
-        rhs = self._load(-dp)
+        rhs = self._load(-dp) if rhs is None else rhs
         if not self._pc_ready:
             self._factorise_at_equilibrium()
         pc = self.ksp.getPC()
@@ -1006,7 +1018,11 @@ class Equilibrium:
         if not self._can_predict(p):
             return None
         try:
-            step = self.tangent_step(p - self.p)
+            # nonlinear goals: the tissue's response to the exact goals at p (one solve
+            # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
+            # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
+            step = self.tangent_step(p - self.p, None if self.goals.linear
+                                     else self._goal_load(p))
         except SolverError:
             return None
         try:
