@@ -234,9 +234,9 @@ class Equilibrium:
         self.goals = goals if hasattr(goals, "goal") else LinearGoals(goals)
         n_local = self.u.x.array.size
         self.n_params = self.goals.n_params
-        shape = self.goals.jacobian(np.zeros(self.n_params)).shape
-        if shape != (n_local, self.n_params):
-            raise InputError(f"goal Jacobian must be ({n_local}, Np), got {shape}")
+        g0 = np.asarray(self.goals.goal(np.zeros(self.n_params)))
+        if g0.shape != (n_local,):
+            raise InputError(f"goals must be ({n_local},) per p, got {g0.shape}")
         # owned vertices held to a goal (checked after every solve)
         self._active = np.zeros(domain.n_owned, dtype=bool)
         blocks = domain.facet_blocks(active_tags)
@@ -291,7 +291,7 @@ class Equilibrium:
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
         # (else, e.g. a mandible held in an occlusion, rest is no equilibrium: inf)
-        moved = np.abs(self.goals.goal(self.p)).max(initial=0.0)
+        moved = np.abs(g0).max(initial=0.0)
         self.solved_xtol = 0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf
         self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
         self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
