@@ -249,9 +249,11 @@ def test_explore_corrected_prediction_same_on_1_and_2_ranks(tmp_path):
     prediction's substeps, secant starts and kept L-BFGS pairs all at work): the same
     predictions on 1 and 2 ranks, errors against the true equilibria the same up to those
     solves' tolerance, and the correction within 0.5 mm. The plain predictions agree to
-    3e-14 mm; the corrected ones (6 L-BFGS steps a substep on MUMPS's 2-rank factor, whose
-    delayed pivots vary from run to run) to 1.1e-6-3.3e-6 mm in four runs with the maxilla
-    held (2e-8-4e-8 mm while it floated in a mandible-only scene): bound 1e-5 mm."""
+    3e-14 mm. The corrected ones take 6 L-BFGS steps a substep on MUMPS's factor, and the
+    2-rank factor is not the same from run to run (its parallel scheduling): three 2-rank
+    runs spread by 2.4e-5 mm, while 1-rank runs repeat bit for bit; 1 against 2 ranks
+    differed by 1.6e-5 and 3.6e-5 mm, 1/4000 of the correction's own error (0.068 mm)
+    (AMD EPYC, Debian 12's MUMPS). Bound: 2e-3 of that error."""
     from fem.equilibrium import METHOD_DEFAULTS
 
     reports = {}
@@ -269,7 +271,8 @@ def test_explore_corrected_prediction_same_on_1_and_2_ranks(tmp_path):
     np.testing.assert_allclose(two["Pg_displacement_predicted"],
                                one["Pg_displacement_predicted"], atol=1e-12)
     np.testing.assert_allclose(two["Pg_displacement_corrected"],
-                               one["Pg_displacement_corrected"], atol=1e-5)
+                               one["Pg_displacement_corrected"],
+                               atol=2e-3 * one["corrected_error_max_mm"])
     xtol = METHOD_DEFAULTS["qn"]["xtol"]   # the true solves' tolerance, mm
     for key in ("plain_error_max_mm", "corrected_error_max_mm"):   # against true solves
         assert abs(one[key] - two[key]) < xtol, (key, one[key], two[key])
