@@ -3,7 +3,8 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py python3-petsc4py \
-            libopenblas0-pthread mpi-default-bin python3-venv python3-matplotlib python3-scipy
+            libopenblas0-pthread mpi-default-bin python3-venv python3-matplotlib python3-scipy \
+            python3-pygalmesh invesalius-examples
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 
@@ -17,11 +18,14 @@ install: $(VENV)/.installed
 	  | grep -q 'install ok installed' || echo $$p; done); \
 	if [ -n "$$missing" ]; then echo "apt-get install $$missing"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; fi
-	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio" && touch $@
+	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio, pygalmesh" && touch $@
 
+# PyPI packages (SimpleITK) are installed against a constraints file that pins Debian's numpy
+# and scipy, so pip can never replace the numpy dolfinx was built with.
 $(VENV)/.installed: .deb-installed pyproject.toml
 	@test -x $(PY) || /usr/bin/python3 -m venv --system-site-packages $(VENV)
-	$(PY) -m pip install -q -e '.[test]'
+	@/usr/bin/python3 -c "import numpy, scipy; print(f'numpy=={numpy.__version__}\nscipy=={scipy.__version__}')" > $(VENV)/constraints.txt
+	$(PY) -m pip install -q -c $(VENV)/constraints.txt -e '.[test,ct]'
 	@touch $@
 
 demo: install

@@ -67,8 +67,9 @@ def _jsonable(x):
     raise TypeError(f"not JSON serialisable: {type(x)}")
 
 
-def _write_on_root(path, write, comm: MPI.Comm) -> None:
-    """Rank 0 calls ``write(tmp_path)``; the file is then renamed to ``path``."""
+def write_on_root(path, write, comm: MPI.Comm) -> None:
+    """Rank 0 calls ``write(tmp_path)``; the file, and any sidecar ``write`` puts beside it,
+    are then renamed into ``path``'s folder together."""
     path = Path(path)
     with _staged(path, comm) as tmp:
         if comm.rank == 0:
@@ -81,7 +82,7 @@ def write_json(path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
         with open(p, "w") as fh:
             json.dump(data, fh, indent=2, default=_jsonable)
             fh.write("\n")
-    _write_on_root(path, write, comm)
+    write_on_root(path, write, comm)
 
 
 def write_npz(path, arrays: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
@@ -89,7 +90,7 @@ def write_npz(path, arrays: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
     def write(p):
         with open(p, "wb") as fh:
             np.savez_compressed(fh, **arrays)
-    _write_on_root(path, write, comm)
+    write_on_root(path, write, comm)
 
 
 def write_xdmf(path, mesh, functions=(), meshtags=(), node_displacement=None,
@@ -120,4 +121,4 @@ def write_text(path, text: str, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
     """Write ``text`` (the same on every rank) to ``path`` atomically (rank 0 writes)."""
     def write(p):
         Path(p).write_text(text)
-    _write_on_root(path, write, comm)
+    write_on_root(path, write, comm)

@@ -117,6 +117,12 @@ class Anatomy:
                             f"{np.flatnonzero(neg if neg.sum() < len(c) / 2 else ~neg)[0]}")
         if neg.all():
             c = c[:, [0, 2, 1, 3]]
+        parts = np.bincount(facet_components(c))
+        if len(parts) > 1:
+            raise MeshError(f"the mesh falls apart into {len(parts)} pieces joined only at edges "
+                            f"or vertices (the largest has {parts.max()} of {len(c)} cells): "
+                            "such hinges are mechanisms, and dolfinx cannot ghost them; keep the "
+                            "largest piece")
         q = tet_quality(p, c)
         if q.min() < SLIVER_QUALITY:
             warnings.warn(f"{np.sum(q < SLIVER_QUALITY)} sliver tetrahedra (shape quality < "
@@ -230,6 +236,19 @@ def _facet_keys(triples: np.ndarray, n: int) -> np.ndarray:
         raise MeshError(f"{n} vertices: at most {MAX_VERTICES} are supported")
     t = np.asarray(triples, dtype=np.int64)
     return (t[:, 0] * n + t[:, 1]) * n + t[:, 2]
+
+
+def facet_components(cells: np.ndarray) -> np.ndarray:
+    """Component label (M,) of each cell, cells being connected through shared facets (a
+    cluster joined to the rest only at an edge or a vertex is a component of its own)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    _, face = np.unique(_facet_keys(faces, int(cells.max()) + 1), return_inverse=True)
+    cell = np.repeat(np.arange(len(cells)), 4)
+    inc = sp.csr_matrix((np.ones(len(face)), (cell, face)), shape=(len(cells), face.max() + 1))
+    return connected_components(inc @ inc.T, directed=False)[1]
 
 
 def boundary_facets(cells: np.ndarray) -> np.ndarray:

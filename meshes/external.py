@@ -81,7 +81,9 @@ def closest_point_on_triangles(points, tris, q):
     return i, bary[i], float(dist[i])
 
 
-def _landmarks(spec: dict, points, facets, tags) -> dict:
+def project_landmarks(spec: dict, points, facets, tags, tol: float = LANDMARK_TOL_MM) -> dict:
+    """Landmarks {name: `Landmark`} from ``{name: [x, y, z] | {"facet", "weights"}}``: a point
+    goes to the nearest skin facet and must lie within ``tol`` mm of the skin."""
     skin = np.flatnonzero(tags == SKIN)
     out = {}
     for name, val in spec.items():
@@ -93,11 +95,18 @@ def _landmarks(spec: dict, points, facets, tags) -> dict:
         if q.shape != (3,) or not np.all(np.isfinite(q)):
             raise MeshError(f"landmark {name!r}: expected a finite point [x, y, z], got {val}")
         i, w, d = closest_point_on_triangles(points, facets[skin], q)
-        if d > LANDMARK_TOL_MM:
+        if d > tol:
             raise MeshError(f"landmark {name!r} at {q.tolist()} is off the skin: the nearest "
-                            f"skin point is {d:.2f} mm away (tolerance {LANDMARK_TOL_MM} mm)")
+                            f"skin point is {d:.2f} mm away (tolerance {tol:g} mm)")
         out[name] = Landmark(facets[skin[i]], w)
     return out
+
+
+def attach_landmarks(anatomy: Anatomy, spec: dict, tol: float = LANDMARK_TOL_MM) -> Anatomy:
+    """Add (or replace) landmarks of ``anatomy`` from points (`project_landmarks`)."""
+    anatomy.landmarks.update(project_landmarks(spec, anatomy.points, anatomy.facets,
+                                               anatomy.facet_tags, tol))
+    return anatomy.validate()
 
 
 def _occlusion(value, sidecar: Path):
@@ -153,7 +162,7 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
                       {}, name=Path(path).name,
                       occlusion=_occlusion(spec.get("occlusion"), sidecar))
     anatomy.validate()
-    anatomy.landmarks = _landmarks(spec.get("landmarks", {}), points, facets, tags)
+    anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
 
 
@@ -187,7 +196,7 @@ def tetrahedralise(skin_file, bone_file, regions: list, landmarks: dict,
         assigned |= inside
     anatomy = Anatomy(points, cells, facets, tags, segments, {}, {}, name=Path(skin_file).name)
     anatomy.validate()
-    anatomy.landmarks = _landmarks(landmarks, points, facets, tags)
+    anatomy.landmarks = project_landmarks(landmarks, points, facets, tags)
     return anatomy.validate()
 
 
@@ -227,3 +236,27 @@ def _gmsh_between(surfaces, h):
     if len(conn) == 0:
         raise MeshError("gmsh produced no tetrahedra between the surfaces")
     return points, index[conn.astype(np.int64)].reshape(-1, 4)
+
+
+def write_tet_mesh(anatomy: Anatomy, path) -> list:
+    """Write ``anatomy`` as a tet mesh (any meshio format by suffix; ``.vtu`` opens in
+    ParaView) with its JSON sidecar ``path + ".json"``, which `load_tet_mesh` reads back
+    exactly (tags as they are, landmarks as facet and weights). Returns the two paths."""
+    import meshio
+
+    path = Path(path)
+    roles = {name: tag for name, tag in ROLE_TAGS.items()}
+    mesh = meshio.Mesh(anatomy.points, [("tetra", anatomy.cells), ("triangle", anatomy.facets)],
+                       cell_data={"tag": [np.zeros(anatomy.n_cells, dtype=np.int32),
+                                          anatomy.facet_tags.astype(np.int32)]})
+    mesh.write(path)
+    sidecar = Path(str(path) + ".json")
+    spec = {"facet_data": "tag", "roles": roles, "segments": anatomy.segments,
+            "pivots": {k: np.asarray(v).tolist() for k, v in anatomy.pivots.items()},
+            "landmarks": {k: {"facet": np.asarray(v.facet).tolist(),
+                              "weights": np.asarray(v.weights).tolist()}
+                          for k, v in anatomy.landmarks.items()}}
+    if anatomy.occlusion is not None:
+        spec["occlusion"] = np.asarray(anatomy.occlusion).tolist()
+    sidecar.write_text(json.dumps(spec, indent=1) + "\n")
+    return [path, sidecar]

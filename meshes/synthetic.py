@@ -35,10 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from meshes.anatomy import (
-    FIXED,
-    FREE_BONE,
     RIM,
-    SEGMENT_TAG0,
     SKIN,
     Anatomy,
     Landmark,
@@ -47,11 +44,12 @@ from meshes.anatomy import (
     signed_volumes,
 )
 from meshes.errors import InputError, MeshError
+from meshes.osteotomy import BAND_MM, SEGMENT_TAGS, SPLIT_MM, Osteotomies, axis_plane
 
 log = logging.getLogger(__name__)
 
 GENERATOR_VERSION = 3
-Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM, SPLIT_MM = -15.0, -38.0, 20.0, 10.0, 15.0
+Z_LEFORT, Z_OCCLUSAL, Y_BSSO = -15.0, -38.0, 20.0
 #: Z_LEFORT: the LeFort I cut runs below the piriform rim, 4 mm above subnasale (z = -19),
 #: so the nose sits on bone that does not move. With the cut at -6 mm (through the nasal
 #: base) a 5 mm LeFort I advance brought the nasal tip 0.42 of it forward and 0.69 up
@@ -202,21 +200,12 @@ def _gmsh_tissue(case: Case, h: float):
     return x.reshape(-1, 3)[used], remap[cells]
 
 
-def classify_bone(mid: np.ndarray, case: Case) -> np.ndarray:
-    """Facet tags (K,) of bone facets with midpoints ``mid`` (K, 3) from the surgical planes."""
-    x, y, z = mid.T
-    z_occ = Z_OCCLUSAL + case.mandible_shift[2]
-    b = BAND_MM / 2
-    tags = np.full(len(mid), FIXED, dtype=np.int32)
-    near = (np.abs(z - Z_LEFORT) < b) | ((y > Y_BSSO - SPLIT_MM) & (y < Y_BSSO + b)) | \
-           ((np.abs(z - z_occ) < b) & (y > Y_BSSO))
-    front = y > Y_BSSO
-    tags[front & (z < z_occ)] = SEGMENT_TAG0                              # mandible
-    maxilla = front & (z >= z_occ) & (z < Z_LEFORT)
-    tags[maxilla & (x >= 0)] = SEGMENT_TAG0 + 1                           # maxilla_L
-    tags[maxilla & (x < 0)] = SEGMENT_TAG0 + 2                            # maxilla_R
-    tags[near | (maxilla & (np.abs(x) < b))] = FREE_BONE
-    return tags
+def case_osteotomies(case: Case) -> Osteotomies:
+    """The surgical planes of a case (rest geometry), as `meshes.osteotomy` classifies them."""
+    bsso = axis_plane(1, Y_BSSO)
+    return Osteotomies(midsagittal=axis_plane(0, 0.0), lefort1=axis_plane(2, Z_LEFORT),
+                       occlusal=axis_plane(2, Z_OCCLUSAL + case.mandible_shift[2]),
+                       ramus_L=bsso, ramus_R=bsso, band_mm=BAND_MM, split_mm=SPLIT_MM)
 
 
 def build(case_name: str, resolution: str) -> Anatomy:
@@ -231,11 +220,10 @@ def build(case_name: str, resolution: str) -> Anatomy:
                     + [e.distance(mid) for e in _primitives(case)[1]], axis=0)
     tags = np.full(len(facets), SKIN, dtype=np.int32)
     is_bone = np.abs(d_bone) < np.abs(d_skin)
-    tags[is_bone] = classify_bone(mid[is_bone], case)
+    tags[is_bone] = case_osteotomies(case).classify(mid[is_bone])
     rim = (np.abs(mid[:, 1] - Y_MASK) < 1e-6) | (np.abs(mid[:, 2] - Z_MASK) < 1e-6)
     tags[rim] = RIM
-    segments = {"mandible": SEGMENT_TAG0, "maxilla_L": SEGMENT_TAG0 + 1,
-                "maxilla_R": SEGMENT_TAG0 + 2}
+    segments = dict(SEGMENT_TAGS)
     skin_idx = np.flatnonzero(tags == SKIN)
     landmarks = {}
     for name, (o, d) in _landmark_rays(case).items():
@@ -303,3 +291,41 @@ def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -
     anatomy = build(case_name, resolution)
     anatomy.save(path)
     return anatomy
+
+
+#: HU of the voxelised synthetic head (`synthetic_ct`): air, soft tissue, cortical bone.
+CT_HU = {"air": -1000, "tissue": 40, "bone": 1000}
+
+
+def synthetic_ct(case_name: str, voxel_mm: float = 1.0, margin_mm: float = 6.0):
+    """The synthetic head of a case as a CT (`meshes.volume.Volume`, HU): the primitives'
+    skin and bone sampled at voxel centres, the whole head (no face mask: the mask's planes
+    are the crop ``synthetic_crop``). For testing the CT pipeline against the anatomy the
+    head is built from."""
+    from meshes.volume import Volume
+
+    case = CASES[case_name]
+    bone, extra, _, _ = _primitives(case)
+    lo = np.array([-95.0, Y_MASK - margin_mm, -95.0])
+    hi = np.array([95.0, 135.0, Z_MASK + margin_mm])
+    axes = [np.arange(a, b + voxel_mm / 2, voxel_mm) for a, b in zip(lo, hi)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    skin = np.min([e.grown(t).distance(g) for e, t in bone] + [e.distance(g) for e in extra],
+                  axis=0) < 0
+    inside_bone = np.min([e.distance(g) for e, _ in bone], axis=0) < 0
+    hu = np.where(inside_bone, CT_HU["bone"], np.where(skin, CT_HU["tissue"], CT_HU["air"]))
+    shape = tuple(len(a) for a in axes)
+    return Volume(hu.reshape(shape).astype(np.int16), np.full(3, voxel_mm), lo,
+                  f"{case_name} voxelised at {voxel_mm:g} mm")
+
+
+def synthetic_scene_file(case_name: str) -> dict:
+    """The CT pipeline's scene file for `synthetic_ct`: the case's osteotomy planes, and the
+    face mask as the crop (its back and top faces held, as the synthetic rim)."""
+    cuts = case_osteotomies(CASES[case_name])
+    plane = lambda p: {"point": list(p.point), "normal": list(p.normal)}  # noqa: E731
+    spec = {k: plane(getattr(cuts, k)) for k in ("midsagittal", "lefort1", "occlusal",
+                                                 "ramus_L", "ramus_R")}
+    spec.update(band_mm=cuts.band_mm, split_mm=cuts.split_mm,
+                crop={"min": [-200.0, Y_MASK, -200.0], "max": [200.0, 200.0, Z_MASK]})
+    return spec

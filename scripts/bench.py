@@ -7,6 +7,7 @@
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
     python3 scripts/bench.py plausibility [--resolutions coarse,paper] [--cases class1]
+    python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper]
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
 and a PNG under ``docs/``: ``mesh`` (tiny to fine, finest as reference: landmark error and the
@@ -770,9 +771,12 @@ def main():
                         "clinical literature")
     pp.add_argument("--resolutions", default="coarse,paper")
     pp.add_argument("--cases", default=None, help="comma-separated (default: all)")
+    c = sub.add_parser("ct", help="the CT pipeline on the example CTs, to a plan")
+    c.add_argument("--cts", default="headsq,cranium")
+    c.add_argument("--resolutions", default="coarse,paper")
     args = ap.parse_args()
     {"forward": forward, "plan": plan, "stress": stress, "accuracy": accuracy,
-     "plausibility": plausibility}[args.what](args)
+     "plausibility": plausibility, "ct": ct}[args.what](args)
 
 
 def plausibility(args) -> None:
@@ -782,6 +786,14 @@ def plausibility(args) -> None:
 
     bench_plausibility.plausibility(args, _simulate, lambda t, a: _header(t, a), _table,
                                     _write_section)
+
+
+def ct(args) -> None:
+    """The CT pipeline on headsq and Cranium (`scripts/bench_ct.py`)."""
+    sys.path.insert(0, str(ROOT))
+    from scripts import bench_ct
+
+    bench_ct.ct(args, lambda t, a: _header(t, a), _table, _write_section)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,386 @@
+"""From a CT volume to a simulation-ready `Anatomy` (the paper's data pipeline, appendix).
+
+Stages, each with the well-kept library for it:
+
+1. **read** (`meshes.volume`: SimpleITK, or the InVesalius project reader);
+2. **segment** (`meshes.segment`: thresholds or a label map; scipy.ndimage) inside the crop;
+3. **mesh** the soft tissue with CGAL Mesh_3 (``pygalmesh.generate_from_array`` on the tissue
+   label), sized per resolution (`CGAL_SIZING`);
+4. **classify** each boundary facet by the label just outside it: skin (air), bone, crop
+   (held: `RIM`) or free (air inside the head, a free crop face: no tag, traction-free); bone
+   facets by the osteotomy planes (`meshes.osteotomy`);
+5. **landmarks** on the mid-sagittal profile (`meshes.landmarks`), or from a file.
+
+The scene file (JSON, mm in the scene's frame: the CT's patient frame with x left, y anterior,
+z superior) holds the osteotomy planes and optionally ``crop`` (``{"min": [x, y, z], "max":
+[x, y, z], "free": ["-z"]}``; default: the whole field of view, every face held),
+``skin_hu``, ``bone_hu``, ``labels`` (a label map's values, ``{"tissue": 1, "bone": 2}``) and
+``occlusion`` (4×4 or a .tfm, the final occlusion). The result is deterministic (CGAL's seed is
+fixed) and cached under `meshes.synthetic.cache_dir` by the input's content, the options and
+the pipeline's source.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from meshes import segment as seg
+from meshes.anatomy import (
+    DIRICHLET_TAGS,
+    FIXED,
+    FREE_BONE,
+    RIM,
+    SKIN,
+    Anatomy,
+    _facet_keys,
+    facet_components,
+    tet_quality,
+)
+from meshes.errors import MeshError
+from meshes.landmarks import profile_landmarks
+from meshes.osteotomy import Osteotomies
+from meshes.synthetic import RESOLUTIONS, cache_dir
+from meshes.volume import Volume, read_volume
+
+log = logging.getLogger(__name__)
+
+#: CGAL Mesh_3 criteria as multiples of the resolution's edge length h (`RESOLUTIONS`): cell
+#: circumradius and surface Delaunay-ball radius 1.3 h, which puts a CT face at the synthetic
+#: heads' vertex counts (headsq, paper: 40.2 k vertices; 0.6 h gave 27 k at coarse), facet
+#: distance 0.3 h (a sphere of radius 40 mm from 1 mm voxels at 0.2 mm: area within 0.6 %,
+#: vertices within 0.2 mm of the radius), radius-edge ratio 3.
+CGAL_SIZING = {"cell": 1.3, "facet_distance": 0.3, "radius_edge": 3.0}
+#: Sampling distances outside a facet, in voxels along its normal, to read the label there.
+SAMPLE_VOXELS = (0.75, 1.5, 2.25)
+#: A facet within this many voxels of a crop face's label boundary, facing out of it, is on
+#: the crop face.
+CROP_FACE_VOXELS = 0.75
+KEYS = ("crop", "skin_hu", "bone_hu", "labels", "occlusion")
+
+
+@contextlib.contextmanager
+def _quiet():
+    """CGAL prints its progress on the standard streams even with verbose=False: send fds 1
+    and 2 to /dev/null meanwhile (its errors still arrive as Python exceptions)."""
+    import ctypes
+    import sys
+
+    libc = ctypes.CDLL(None)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        libc.fflush(None)   # C++ streams are synced with stdio: flush them into /dev/null
+        for fd, copy in zip((1, 2), saved):
+            os.dup2(copy, fd)
+            os.close(copy)
+
+
+def _digest(path: Path) -> str:
+    h = hashlib.sha1()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for f in files:
+        h.update(f.name.encode())
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def _code_digest() -> str:
+    """The pipeline's own source: a cached scene is rebuilt when the code that made it
+    changes (the synthetic heads bump `GENERATOR_VERSION` by hand; here no hand is needed)."""
+    from meshes import anatomy, landmarks, osteotomy, segment, volume
+
+    h = hashlib.sha1()
+    for module in (anatomy, landmarks, osteotomy, segment, volume):
+        h.update(Path(module.__file__).read_bytes())
+    h.update(Path(__file__).read_bytes())
+    return h.hexdigest()
+
+
+def read_scene_file(path) -> dict:
+    """The scene file's JSON (see the module docstring)."""
+    try:
+        spec = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise MeshError(f"cannot read the osteotomy file {path}: {e}") from None
+    if not isinstance(spec, dict):
+        raise MeshError(f"{path}: expected a JSON object")
+    return spec
+
+
+def _crop_box(spec, volume: Volume):
+    crop = spec.get("crop") or {}
+    lo = np.asarray(crop.get("min", volume.origin), float)
+    hi = np.asarray(crop.get("max", volume.origin + volume.spacing * (np.array(
+        volume.array.shape) - 1)), float)
+    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(np.r_[lo, hi])) \
+            or np.any(hi <= lo):
+        raise MeshError(f"crop: expected min < max, each [x, y, z] mm; got {crop!r}")
+    return lo, hi, tuple(crop.get("free", ()))
+
+
+def _mesh(labels: np.ndarray, volume: Volume, h: float):
+    """CGAL tets of the tissue label: points (N, 3) mm in the scene's frame, cells (M, 4)."""
+    import pygalmesh
+
+    tissue = (labels == seg.TISSUE).astype(np.uint8)
+    with _quiet():
+        m = pygalmesh.generate_from_array(
+            tissue, tuple(float(s) for s in volume.spacing),
+            max_cell_circumradius=CGAL_SIZING["cell"] * h,
+            max_radius_surface_delaunay_ball=CGAL_SIZING["cell"] * h,
+            max_facet_distance=CGAL_SIZING["facet_distance"] * h,
+            max_circumradius_edge_ratio=CGAL_SIZING["radius_edge"], verbose=False, seed=1)
+    cells = np.asarray(m.get_cells_type("tetra"), dtype=np.int64)
+    if len(cells) == 0:
+        raise MeshError(f"CGAL produced no tetrahedra from the tissue of {volume.name}")
+    # CGAL leaves a few clusters hanging at an edge or a vertex where the tissue is thin
+    # (Cranium coarse: 27 of them, 92 of 18 592 cells): keep the facet-connected bulk
+    part = facet_components(cells)
+    cells = cells[part == np.bincount(part).argmax()]
+    points, cells = split_pinched_vertices(np.asarray(m.points, float), cells)
+    # voxel i of the padded array sits at i * spacing in CGAL's frame
+    return points + volume.origin - volume.spacing, cells
+
+
+def split_pinched_vertices(points: np.ndarray, cells: np.ndarray):
+    """(points, cells) with every vertex whose cells form several fans (groups joined through
+    facets at that vertex) split into one vertex per fan, and unused points dropped. CGAL
+    pinches thin tissue at single vertices (Cranium coarse: 220 of them), and Debian's dolfinx
+    0.5.2 then deadlocks in ``create_connectivity(2, 0)`` on 2 ranks (its shared-facet
+    ghosting); a split vertex is two nodes at one place, which the mechanics allows."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    faces = cells[:, local].reshape(-1, 3)
+    keys = _facet_keys(np.sort(faces, axis=1), len(points))
+    order = np.argsort(keys, kind="stable")
+    pair = np.flatnonzero(keys[order][1:] == keys[order][:-1])
+    r1, r2 = order[pair], order[pair + 1]           # the two cells' rows of each inner facet
+    c1, c2 = r1 // 4, r2 // 4
+    verts = faces[r1]                                # (K, 3) vertices of each inner facet
+    pos1 = np.argmax(cells[c1][:, :, None] == verts[:, None, :], axis=1)
+    pos2 = np.argmax(cells[c2][:, :, None] == verts[:, None, :], axis=1)
+    a, b = (c1[:, None] * 4 + pos1).ravel(), (c2[:, None] * 4 + pos2).ravel()
+    n = cells.size   # one node per (cell, corner); corners joined through a shared facet
+    graph = sp.csr_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    _, fan = connected_components(graph, directed=False)
+    new, first = np.unique(fan, return_index=True)
+    remap = np.empty(new.max() + 1, dtype=np.int64)
+    remap[new] = np.arange(len(new))
+    return points[cells.ravel()[first]], remap[fan].reshape(cells.shape)
+
+
+def _boundary(cells: np.ndarray, points: np.ndarray):
+    """Boundary facets (B, 3) and their outward unit normals (B, 3)."""
+    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    faces = cells[:, local].reshape(-1, 3)
+    opposite = cells.reshape(-1)
+    keys = _facet_keys(np.sort(faces, axis=1), len(points))
+    _, first, count = np.unique(keys, return_index=True, return_counts=True)
+    b = first[count == 1]
+    faces, opposite = faces[b], opposite[b]
+    x = points[faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    n *= np.sign(np.einsum("ij,ij->i", n, x[:, 0] - points[opposite]))[:, None]
+    return faces, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _outside_label(labels: np.ndarray, volume: Volume, mid, normal) -> np.ndarray:
+    """The label (B,) just outside each facet: the first non-tissue sample along its normal,
+    else the most common non-tissue label around the facet's voxel."""
+    origin = volume.origin - volume.spacing   # the padded array
+    step = np.abs(normal) @ volume.spacing
+    out = np.full(len(mid), 255, dtype=np.int32)
+    shape = np.array(labels.shape)
+    for k in SAMPLE_VOXELS:
+        todo = out == 255
+        ijk = np.rint((mid[todo] + k * step[todo, None] * normal[todo] - origin)
+                      / volume.spacing).astype(int)
+        ijk = np.clip(ijk, 0, shape - 1)
+        lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]].astype(np.int32)
+        sel = np.flatnonzero(todo)
+        hit = lab != seg.TISSUE
+        out[sel[hit]] = lab[hit]
+    for i in np.flatnonzero(out == 255):
+        ijk = np.clip(np.rint((mid[i] - origin) / volume.spacing).astype(int), 1, shape - 2)
+        box = labels[ijk[0] - 1:ijk[0] + 2, ijk[1] - 1:ijk[1] + 2, ijk[2] - 1:ijk[2] + 2]
+        vals = box[box != seg.TISSUE]
+        out[i] = np.bincount(vals).argmax() if len(vals) else seg.OUTSIDE
+    return out
+
+
+def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = False):
+    """(Anatomy, info) from a CT (or label map) and a scene file; info has ``timings_s``
+    per stage and ``min_quality``. No cache: see `ct_anatomy`."""
+    if resolution not in RESOLUTIONS:
+        raise MeshError(f"unknown resolution {resolution!r}; choose one of {list(RESOLUTIONS)}")
+    spec = read_scene_file(scene_file)
+    cuts = Osteotomies.from_dict(spec, str(scene_file))
+    timings = {}
+    t = time.perf_counter()
+    volume = read_volume(ct_path)
+    timings["read"] = time.perf_counter() - t
+    t = time.perf_counter()
+    lo, hi, free = _crop_box(spec, volume)
+    volume = volume.crop(lo, hi)
+    if labelmap or spec.get("labels") is not None:
+        body, bone = seg.labels_from_map(volume, spec.get("labels"))
+    else:
+        body, bone = seg.labels_from_ct(volume, float(spec.get("skin_hu", seg.SKIN_HU)),
+                                        float(spec.get("bone_hu", seg.BONE_HU)))
+    labels = seg.label_volume(volume, body, bone, free)
+    timings["segment"] = time.perf_counter() - t
+    t = time.perf_counter()
+    points, cells = _mesh(labels, volume, RESOLUTIONS[resolution])
+    timings["mesh"] = time.perf_counter() - t
+    t = time.perf_counter()
+    facets, normals = _boundary(cells, points)
+    mid = points[facets].mean(axis=1)
+    outside = _outside_label(labels, volume, mid, normals)
+    tags = np.zeros(len(facets), dtype=np.int32)   # 0: free surface, dropped below
+    tags[outside == seg.OUTSIDE] = SKIN
+    tags[outside == seg.CROP] = RIM
+    on_face = _crop_faces(volume, mid, normals, free)
+    tags[on_face == seg.CROP] = RIM
+    tags[on_face == seg.CROP_FREE] = 0
+    is_bone = outside == seg.BONE
+    if not is_bone.any():
+        raise MeshError(f"no bone surface under the tissue of {volume.name}")
+    cuts.check_cuts(mid[is_bone])
+    tags[is_bone] = cuts.classify(mid[is_bone])
+    segments = cuts.segments()
+    held = _held_faces(lo, hi, free)
+    near_crop = np.zeros(len(facets), dtype=bool)
+    for axis, value in held:   # bone at a held crop face is free, as at a cut
+        near_crop |= np.abs(mid[:, axis] - value) < cuts.band_mm / 2
+    moving = np.isin(tags, list(segments.values()))
+    tags[moving & near_crop] = FREE_BONE
+    _widen_bands(points, facets, tags, list(segments.values()), cuts.band_mm / 2)
+    for name, tag in segments.items():
+        if not np.any(tags == tag):
+            raise MeshError(f"segment {name!r} has no facets: the osteotomy planes leave no "
+                            "bone surface for it inside the crop")
+    if not np.any(tags == FIXED):
+        raise MeshError("no fixed bone is left: the cuts free all bone; the skull must hold")
+    keep = tags != 0
+    anatomy = Anatomy(points, cells, facets[keep], tags[keep], segments, {}, {},
+                      name=f"{Path(ct_path).name}/{resolution}")
+    anatomy.validate()
+    timings["classify"] = time.perf_counter() - t
+    t = time.perf_counter()
+    skin = anatomy.facets[anatomy.facet_tags == SKIN]
+    anatomy.landmarks = profile_landmarks(anatomy.points, skin, cuts.midsagittal)
+    anatomy.validate()
+    timings["landmarks"] = time.perf_counter() - t
+    return anatomy, {"timings_s": timings,
+                     "min_quality": float(tet_quality(anatomy.points, anatomy.cells).min()),
+                     "voxel_mm": volume.spacing.tolist()}
+
+
+def _crop_faces(volume: Volume, mid, normals, free) -> np.ndarray:
+    """`CROP` or `CROP_FREE` (B,) for facets that lie on a crop face and face out of it (the
+    label boundary half a voxel beyond the last voxel centre, within `CROP_FACE_VOXELS`),
+    else 255. CGAL rounds the edges of a crop face, where the samples outside a facet may
+    reach past the crop's one-voxel padding into the air and call a cut face skin."""
+    out = np.full(len(mid), 255, dtype=np.int32)
+    last = volume.origin + volume.spacing * (np.array(volume.array.shape) - 1)
+    for axis in range(3):
+        h = volume.spacing[axis]
+        for side, plane, sign in (("-", volume.origin[axis] - h / 2, -1.0),
+                                  ("+", last[axis] + h / 2, 1.0)):
+            hit = (np.abs(mid[:, axis] - plane) < CROP_FACE_VOXELS * h) & \
+                (sign * normals[:, axis] > 0.5)
+            out[hit] = seg.CROP_FREE if f"{side}{'xyz'[axis]}" in free else seg.CROP
+    return out
+
+
+def _widen_bands(points, facets, tags, segment_tags, gap_mm: float):
+    """Free bone (in place) where a segment meets held bone or a held crop face: segment
+    facets that share a vertex with one (a band narrower than a facet, on coarse meshes, must
+    still part them), and segment and fixed-bone facets that face each other across less
+    than ``gap_mm`` of tissue (a real skull folds: the LeFort I segment lies a few mm from the
+    zygoma and the pterygoid plates, and the tissue between them was crushed to det F 0.44
+    by a 2 mm advance of headsq's jaws at coarse)."""
+    from scipy.spatial import cKDTree
+
+    held = np.zeros(facets.max() + 1, dtype=bool)
+    held[facets[np.isin(tags, DIRICHLET_TAGS)]] = True
+    moving = np.isin(tags, segment_tags)
+    tags[moving & held[facets].any(axis=1)] = FREE_BONE
+    for a, b in ((np.isin(tags, segment_tags), np.isin(tags, DIRICHLET_TAGS)),
+                 (tags == FIXED, np.isin(tags, segment_tags))):
+        if a.any() and b.any():   # vertex to vertex: facets are larger than the gap
+            tree = cKDTree(points[np.unique(facets[b])])
+            d, _ = tree.query(points[facets[a]].reshape(-1, 3), distance_upper_bound=gap_mm)
+            near = np.isfinite(d).reshape(-1, 3).any(axis=1)
+            tags[np.flatnonzero(a)[near]] = FREE_BONE
+
+
+def _held_faces(lo, hi, free):
+    """(axis, coordinate) of the crop faces that are held."""
+    out = []
+    for axis in range(3):
+        for side, value in (("-", lo[axis]), ("+", hi[axis])):
+            if f"{side}{'xyz'[axis]}" not in free:
+                out.append((axis, value))
+    return out
+
+
+def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = False,
+               landmarks=None):
+    """(Anatomy, info): `build`, from the cache when the same input and options were meshed
+    before (info then has ``cached: True`` and the original timings). ``landmarks``: a file
+    (`meshes.landmarks.read_landmark_file`) whose points replace or add to the built ones."""
+    from meshes.external import attach_landmarks
+    from meshes.transforms import read_transform
+
+    ct_path, scene_file = Path(ct_path), Path(scene_file)
+    if not ct_path.exists():
+        raise MeshError(f"{ct_path} does not exist")
+    spec = read_scene_file(scene_file)
+    key = hashlib.sha1(json.dumps([_code_digest(), _digest(ct_path), spec, resolution,
+                                   labelmap], sort_keys=True).encode())
+    path = cache_dir() / f"ct-{ct_path.stem}-{resolution}-{key.hexdigest()[:12]}.npz"
+    info_path = path.with_suffix(".json")
+    anatomy = None
+    if path.exists() and info_path.exists():
+        try:
+            anatomy, info = Anatomy.load(path), json.loads(info_path.read_text())
+            info["cached"] = True
+        except (MeshError, OSError, json.JSONDecodeError):
+            log.warning("cached CT scene %s is unreadable; rebuilding", path)
+            anatomy = None
+    if anatomy is None:
+        anatomy, info = build(ct_path, scene_file, resolution, labelmap)
+        anatomy.save(path)
+        tmp = info_path.with_suffix(".json.part")
+        tmp.write_text(json.dumps(info))
+        os.replace(tmp, info_path)
+        info["cached"] = False
+    if spec.get("occlusion") is not None:
+        occ = spec["occlusion"]
+        anatomy.occlusion = read_transform(scene_file.parent / occ if isinstance(occ, str)
+                                           else occ, f"the occlusion in {scene_file}")
+    if landmarks is not None:
+        from meshes.landmarks import read_landmark_file
+
+        tol = max(float(np.linalg.norm(info["voxel_mm"])), 0.5)
+        attach_landmarks(anatomy, read_landmark_file(landmarks), tol)
+    return anatomy, info

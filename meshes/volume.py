@@ -1,0 +1,172 @@
+"""CT volumes read into orthodiff's frame.
+
+`read_volume(path)` reads a DICOM series (a folder), NIfTI (``.nii``, ``.nii.gz``), NRRD,
+MetaImage (``.mha``/``.mhd``) with SimpleITK, which honours spacing, origin and direction
+cosines, and InVesalius projects (``.inv3``). The image's patient frame (LPS: x to the
+patient's left, y to posterior, z to superior) becomes orthodiff's (x left, y anterior,
+z superior): ``x_ours = diag(1, -1, 1) x_LPS``, the same map as `meshes.transforms`. The
+voxels are reoriented (permuted and flipped, no interpolation) so that array axes 0, 1, 2
+run along +x, +y, +z; an oblique image (gantry tilt) is resampled linearly onto that grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import plistlib
+import tarfile
+from pathlib import Path
+
+import numpy as np
+
+from meshes.errors import MeshError
+
+#: LPS -> orthodiff frame (x left, y anterior, z superior).
+F = np.diag([1.0, -1.0, 1.0])
+#: Largest deviation of a direction cosine from the axes before an image is resampled.
+AXIS_TOL = 1e-4
+
+
+@dataclasses.dataclass
+class Volume:
+    """A scalar volume on an axis-aligned grid in orthodiff's frame.
+
+    Attributes:
+        array: (nx, ny, nz) values (HU for a CT, labels for a label map); axis 0 runs along
+            +x (left), 1 along +y (anterior), 2 along +z (superior).
+        spacing: (3,) voxel size, mm.
+        origin: (3,) position of voxel (0, 0, 0)'s centre, mm.
+        name: source, for messages and reports.
+    """
+
+    array: np.ndarray
+    spacing: np.ndarray
+    origin: np.ndarray
+    name: str = "volume"
+
+    def centres(self, axis: int) -> np.ndarray:
+        """Voxel-centre coordinates (n_axis,) mm along one axis."""
+        return self.origin[axis] + self.spacing[axis] * np.arange(self.array.shape[axis])
+
+    def index_of(self, points) -> np.ndarray:
+        """Nearest voxel indices (K, 3) of points (K, 3) mm, clipped into the grid."""
+        ijk = np.rint((np.asarray(points, float) - self.origin) / self.spacing).astype(int)
+        return np.clip(ijk, 0, np.array(self.array.shape) - 1)
+
+    def crop(self, lo, hi) -> "Volume":
+        """The sub-volume of the voxels whose centres lie in the box [lo, hi] (mm)."""
+        sl = []
+        for a in range(3):
+            c = self.centres(a)
+            keep = np.flatnonzero((c >= lo[a]) & (c <= hi[a]))
+            if len(keep) == 0:
+                raise MeshError(f"the crop [{lo[a]:g}, {hi[a]:g}] mm along {'xyz'[a]} leaves no "
+                                f"voxel of {self.name} (it spans [{c[0]:g}, {c[-1]:g}] mm)")
+            sl.append(slice(keep[0], keep[-1] + 1))
+        origin = self.origin + self.spacing * np.array([s.start for s in sl])
+        return Volume(self.array[tuple(sl)], self.spacing.copy(), origin, self.name)
+
+
+def read_volume(path) -> Volume:
+    """Read a CT or label volume (see the module docstring); raises `MeshError` with one line
+    when the file is no readable 3-D image."""
+    path = Path(path)
+    if not path.exists():
+        raise MeshError(f"{path} does not exist")
+    if path.suffix.lower() == ".inv3":
+        return _read_inv3(path)
+    return _read_sitk(path)
+
+
+def _read_sitk(path: Path) -> Volume:
+    import SimpleITK as sitk
+
+    try:
+        if path.is_dir():
+            reader = sitk.ImageSeriesReader()
+            files = reader.GetGDCMSeriesFileNames(str(path))
+            if not files:
+                raise MeshError(f"{path} is a folder with no DICOM series")
+            reader.SetFileNames(files)
+            image = reader.Execute()
+        else:
+            image = sitk.ReadImage(str(path))
+    except RuntimeError as e:
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        why = next((ln for ln in reversed(lines) if "ERROR" in ln), lines[-1] if lines else "")
+        why = why.split("ERROR:", 1)[-1].strip()
+        raise MeshError(f"cannot read {path} as an image (DICOM folder, NIfTI, NRRD, MetaImage "
+                        f"or .inv3): {why[:160]}") from None
+    if image.GetDimension() != 3 or min(image.GetSize()) < 2:
+        raise MeshError(f"{path} is a {image.GetDimension()}-D image of size "
+                        f"{list(image.GetSize())}; a 3-D volume is needed")
+    if image.GetNumberOfComponentsPerPixel() != 1:
+        raise MeshError(f"{path} has {image.GetNumberOfComponentsPerPixel()} components per "
+                        "voxel; a scalar CT or label volume is needed")
+    image = sitk.DICOMOrient(image, "LAS")   # axes along +x L, +y A, +z S (in LPS: diag F)
+    D = np.array(image.GetDirection()).reshape(3, 3)
+    if np.abs(D - F).max() > AXIS_TOL:   # oblique: resample onto the aligned grid
+        image = _resample_aligned(image)
+    array = sitk.GetArrayFromImage(image).transpose(2, 1, 0)   # (z, y, x) -> (x, y, z)
+    return Volume(np.ascontiguousarray(array), np.array(image.GetSpacing(), float),
+                  F @ np.array(image.GetOrigin(), float), path.name)
+
+
+def _resample_aligned(image):
+    """Linear resampling of an oblique image onto the axis-aligned grid that covers it."""
+    import SimpleITK as sitk
+
+    size = np.array(image.GetSize())
+    corners = np.array([image.TransformContinuousIndexToPhysicalPoint(
+        [float(c) for c in np.array([i, j, k]) * (size - 1)])
+        for i in (0, 1) for j in (0, 1) for k in (0, 1)]) @ F   # ours (F is its own inverse)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    spacing = np.full(3, min(image.GetSpacing()))
+    n = np.ceil((hi - lo) / spacing).astype(int) + 1
+    ref = sitk.Image([int(v) for v in n], image.GetPixelID())
+    ref.SetSpacing(spacing.tolist())
+    ref.SetDirection(F.ravel().tolist())
+    ref.SetOrigin((F @ lo).tolist())
+    low = float(sitk.GetArrayViewFromImage(image).min())
+    return sitk.Resample(image, ref, sitk.Transform(), sitk.sitkLinear, low)
+
+
+def _read_inv3(path: Path) -> Volume:
+    """An InVesalius 3 project: a gzipped tar of ``main.plist`` (shape, spacing, dtype) and
+    ``matrix.dat`` (C-order (z, y, x) int16 HU, axial slices from inferior to superior, image
+    rows from posterior to anterior, columns to the patient's left: InVesalius stores its
+    slices flipped vertically, as VTK draws them). The origin is not stored: voxel
+    (0, 0, 0) is put at 0."""
+    try:
+        with tarfile.open(path, "r:*") as tar:
+            members = {Path(m.name).name: m for m in tar.getmembers() if m.isfile()}
+            main = plistlib.loads(tar.extractfile(members["main.plist"]).read())
+            info = main["matrix"]
+            raw = tar.extractfile(members[Path(info["filename"]).name]).read()
+    except (tarfile.TarError, KeyError, OSError, plistlib.InvalidFileException) as e:
+        raise MeshError(f"cannot read {path} as an InVesalius project (.inv3): "
+                        f"{type(e).__name__}: {e}") from None
+    shape = tuple(int(s) for s in info["shape"])
+    if len(shape) != 3:
+        raise MeshError(f"{path}: a {len(shape)}-D matrix; a 3-D volume is needed")
+    if int(main.get("orientation", 1)) != 1:
+        raise MeshError(f"{path}: only axial InVesalius projects are supported (orientation "
+                        f"{main.get('orientation')})")
+    data = np.frombuffer(raw, dtype=np.dtype(info["dtype"]))
+    if data.size != np.prod(shape):
+        raise MeshError(f"{path}: matrix.dat holds {data.size} values, the shape {shape} "
+                        f"needs {np.prod(shape)}")
+    array = data.reshape(shape).transpose(2, 1, 0)   # (z, y, x) -> (x, y, z)
+    spacing = np.array(main["spacing"], dtype=float)
+    return Volume(np.ascontiguousarray(array), spacing, np.zeros(3), path.name)
+
+
+def write_volume(volume: Volume, path) -> None:
+    """Write ``volume`` with SimpleITK (format by suffix: .mha, .nii.gz, .nrrd ...) in its
+    patient frame (LPS), so that `read_volume` gives it back."""
+    import SimpleITK as sitk
+
+    image = sitk.GetImageFromArray(np.ascontiguousarray(volume.array.transpose(2, 1, 0)))
+    image.SetSpacing([float(s) for s in volume.spacing])
+    image.SetOrigin([float(v) for v in F @ volume.origin])
+    image.SetDirection(F.ravel().tolist())
+    sitk.WriteImage(image, str(path))

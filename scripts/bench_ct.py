@@ -1,0 +1,121 @@
+"""``bench.py ct``: the CT pipeline on the two example CTs (issue 16 §4).
+
+For each CT and resolution, each step a fresh script process, as a user chains them:
+``ct_scene.py`` (a fresh cache: every stage timed), ``simulate.py --mesh`` with a 5 mm
+advance of the moved bone (the soft-to-hard ratios of `scripts.bench_plausibility` where
+the landmarks exist), and ``plan.py --mesh`` to the CT's clinical goal (`CTS`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: name -> (CT, scene file, the 5 mm advance, the goal: landmark -> displacement mm, the
+#: plan's parameters). Goals: headsq's chin and lower lip 4 mm forward (a retruded lower
+#: face, both jaws advanced in the CT's occlusion); Cranium's subnasale 3 mm forward and 1 mm
+#: down (a retruded midface: LeFort I advance).
+CTS = {
+    "headsq": (ROOT.parent / "shared" / "data" / "headsq" / "headsq.mhd",
+               ROOT / "meshes" / "examples" / "headsq.json", "jaws.advance_mm",
+               {"Pg": [0, 4, 0], "Li": [0, 4, 0], "Me": [0, 3, 0]},
+               "jaws.advance_mm,jaws.vertical_mm,jaws.pitch_deg"),
+    "cranium": (Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3"),
+                ROOT / "meshes" / "examples" / "cranium.json", "maxilla.advance_mm",
+                {"Sn": [0, 3, -1], "Prn": [0, 1, 0]},
+                "maxilla.advance_mm,maxilla.vertical_mm"),
+}
+MOVE_MM = 5.0
+GOAL_S = 60.0
+
+
+def _run(script: str, args: list, env: dict) -> dict:
+    with tempfile.TemporaryDirectory() as d:
+        rep = Path(d) / "r.json"
+        r = subprocess.run([sys.executable, str(ROOT / "scripts" / script), *args, "--report",
+                            str(rep)], capture_output=True, text=True, env=env)
+        if r.returncode != 0:
+            return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
+        return json.loads(rep.read_text())
+
+
+def _ratios(sim: dict, param: str) -> list:
+    """[(landmark, published range, ratio)] of the rows of `bench_plausibility.RATIOS` whose
+    treatment the CT's advance makes (jaws: the mandible's rows) and whose landmark it has."""
+    from scripts.bench_plausibility import RATIOS
+
+    segment = param.split(".")[0]
+    out = []
+    for p, lm, axis, rng, src in RATIOS:
+        if lm not in sim["landmarks"] or (segment != "jaws" and p.split(".")[0] != segment) \
+                or (segment == "jaws" and not p.startswith("mandible")):
+            continue
+        d = sim["landmarks"][lm][axis] - sim["landmarks_rest"][lm][axis]
+        out.append((f"{lm} {'up' if axis == 2 else 'fwd'}", rng, d / MOVE_MM))
+    return out
+
+
+def ct(args, header, table, write_section) -> None:
+    rows, ratio_rows = [], []
+    for name in args.cts.split(","):
+        ct_path, scene, param, goal, plan_params = CTS[name]
+        if not ct_path.exists():
+            rows.append([name, "", f"absent: {ct_path}"] + [""] * 10)
+            continue
+        for res in args.resolutions.split(","):
+            with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
+                env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+                           ORTHODIFF_CACHE=cache)
+                rep = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene),
+                                           "--resolution", res, "--out", out], env)
+                if "error" in rep:
+                    rows.append([name, res, rep["error"]] + [""] * 10)
+                    continue
+                t = rep["timings_s"]
+                sim = _run("simulate.py", ["--mesh", rep["mesh"], "--p",
+                                           f"{param}={MOVE_MM}"], env)
+                goal_lms = [k for k in goal if k in rep["landmarks"]]
+                targets = Path(out) / "targets.json"
+                targets.write_text(json.dumps({k: [a + b for a, b in zip(
+                    rep["landmarks"][k], goal[k])] for k in goal_lms}))
+                plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
+                                        "--landmarks", ",".join(goal_lms), "--params-used",
+                                        plan_params], env) if goal_lms else {"error": "none"}
+            fwd = "failed" if "error" in sim else \
+                f"{sim['timings_s']['total']:.1f} ({sim['newton_iterations']})"
+            pl = plan.get("error", "")[:40] if "error" in plan else (
+                f"{plan['mean_distance_before_mm']:.2f} → {plan['mean_distance_after_mm']:.2f}"
+                f" mm, {plan['timings_s']['total']:.1f} s")
+            rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
+                         f"{rep['min_quality']:.3f}",
+                         *(f"{t[k]:.1f}" for k in ("read", "segment", "mesh", "classify",
+                                                   "landmarks")),
+                         f"**{t['total']:.1f}**", fwd, pl])
+            if "error" not in sim:
+                for lm, rng, v in _ratios(sim, param):
+                    ok = rng is None or rng[0] <= v <= rng[1]
+                    ratio_rows.append([name, res, param, lm, "—" if rng is None else
+                                       f"{rng[0]:g}–{rng[1]:g}",
+                                       f"{v:.2f}" if ok else f"**{v:.2f}** ✗"])
+            print(rows[-1], flush=True)
+    body = header("CT scenes: from a CT volume to a plan", args) + [
+        "Each row: `scripts/ct_scene.py` into a fresh cache (stage times in seconds, "
+        f"goal: a paper-size scene in ≤ {GOAL_S:g} s), then `scripts/simulate.py --mesh` "
+        f"with a {MOVE_MM:g} mm advance of the moved bone (headsq: both jaws in the CT's "
+        "occlusion, `jaws.advance_mm`; Cranium: the LeFort I, `maxilla.advance_mm`; seconds "
+        "and iterations), then `scripts/plan.py --mesh` to the CT's goal (headsq: Pg and Li "
+        "4 mm, Me 3 mm forward; Cranium: Sn 3 mm forward and 1 mm down, Prn 1 mm forward).",
+        ""]
+    body += table(["CT", "resolution", "vertices", "tets", "min quality", "read", "segment",
+                   "mesh", "classify", "landmarks", "total", "5 mm advance s (its)",
+                   "plan: mean distance, time"], rows)
+    body += ["", "Soft-to-hard ratios of the 5 mm advance against the published ranges "
+             "(`bench.py plausibility` names the sources); ✗: outside.", ""]
+    body += table(["CT", "resolution", "treatment", "landmark", "published", "ratio"],
+                  ratio_rows)
+    write_section("ct", "\n".join(body))

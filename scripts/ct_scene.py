@@ -1,0 +1,104 @@
+#!/usr/bin/env python3
+"""A CT volume to a simulation-ready scene (tet mesh + JSON sidecar) for ``--mesh``.
+
+    python3 scripts/ct_scene.py --ct ../shared/data/headsq/headsq.mhd \
+        --osteotomies meshes/examples/headsq.json --resolution paper \
+        --out out/headsq --report out/headsq/ct.json
+    python3 scripts/plan.py --mesh out/headsq/scene.vtu --occlusion free --targets T.json
+
+``--ct``: a DICOM folder, NIfTI, NRRD, MetaImage (.mha/.mhd) or an InVesalius .inv3 project
+(HU), or a label map with ``--labelmap`` (3D Slicer segmentation: 1 tissue, 2 bone). The
+osteotomy file holds the cut planes and the crop (`meshes.ct`, `meshes.osteotomy`); the
+landmarks are built on the mid-sagittal profile (`meshes.landmarks`) unless ``--landmarks``
+(JSON ``{name: [x, y, z]}`` or a 3D Slicer ``.mrk.json``) gives them. The result is cached;
+the outputs are written whole or not at all. Under mpirun, rank 0 builds and writes.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from scripts._common import parse, run_main  # noqa: E402
+
+MESH_NAME = "scene.vtu"
+
+
+def parser():
+    import argparse
+
+    from meshes.synthetic import RESOLUTIONS
+    from scripts._common import _one_line_error
+
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.error = _one_line_error
+    ap.add_argument("--ct", required=True, help="CT volume (file or DICOM folder)")
+    ap.add_argument("--osteotomies", required=True, help="JSON of cut planes and crop (mm)")
+    ap.add_argument("--landmarks", help="JSON {name: [x, y, z]} or 3D Slicer .mrk.json")
+    ap.add_argument("--labelmap", action="store_true", help="--ct is a label map")
+    ap.add_argument("--resolution", default="coarse", choices=list(RESOLUTIONS))
+    ap.add_argument("--out", required=True, help=f"output folder ({MESH_NAME} + its sidecar)")
+    ap.add_argument("--report", help="JSON report path")
+    ap.add_argument("--picture", help="PNG of the scene: skin, segments, landmarks")
+    return ap
+
+
+def main(argv=None):
+    args, comm = parse(parser(), argv)
+    import time
+
+    from fem.io import write_json, write_on_root
+    from meshes.anatomy import SKIN
+    from meshes.errors import MeshError
+    from meshes.external import write_tet_mesh
+
+    t0 = time.perf_counter()
+    result = None
+    if comm.rank == 0:
+        from meshes.ct import ct_anatomy
+
+        try:
+            result = ct_anatomy(args.ct, args.osteotomies, args.resolution, args.labelmap,
+                                args.landmarks)
+        except MeshError as e:
+            result = str(e)
+    error = comm.bcast(result if isinstance(result, str) else None, root=0)
+    if error:
+        raise MeshError(error)
+    mesh = Path(args.out) / MESH_NAME
+    report = None
+    if comm.rank == 0:
+        anatomy, info = result
+        timings = dict(info["timings_s"])
+        t = time.perf_counter()
+    write_on_root(mesh, (lambda p: write_tet_mesh(anatomy, p)) if comm.rank == 0 else None,
+                  comm)
+    if comm.rank == 0:
+        timings["write"] = time.perf_counter() - t
+        timings["total"] = time.perf_counter() - t0
+        report = {
+            "mesh": str(mesh), "n_vertices": anatomy.n_vertices, "n_cells": anatomy.n_cells,
+            "segments": {n: int((anatomy.facet_tags == tag).sum())
+                         for n, tag in anatomy.segments.items()},
+            "skin_facets": int((anatomy.facet_tags == SKIN).sum()),
+            "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
+            "min_quality": info["min_quality"], "voxel_mm": info["voxel_mm"],
+            "cached": info["cached"], "timings_s": timings}
+        print(f"{mesh}: {anatomy.n_vertices} vertices, {anatomy.n_cells} tets, segments "
+              f"{report['segments']}, landmarks {sorted(report['landmarks'])}, min quality "
+              f"{info['min_quality']:.3f}, {timings['total']:.1f} s"
+              + (" (cached)" if info["cached"] else ""))
+    if args.picture:
+        from scripts._render import render_scene
+
+        write_on_root(args.picture, (lambda p: render_scene(anatomy, p)) if comm.rank == 0
+                      else None, comm)
+    if args.report:
+        write_json(args.report, comm.bcast(report, root=0), comm)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))

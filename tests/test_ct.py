@@ -1,0 +1,261 @@
+"""The CT pipeline (issue 16): a CT made from a synthetic head against that head, the two real
+CTs through the scripts as a user chains them, and every bad input's one-line error."""
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_scripts import ROOT, _mpirun, _run
+
+CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
+SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]
+PLAN = [sys.executable, str(ROOT / "scripts" / "plan.py")]
+HEADSQ = ROOT.parent / "shared" / "data" / "headsq" / "headsq.mhd"
+CRANIUM = Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3")
+EXAMPLES = ROOT / "meshes" / "examples"
+REPORT_KEYS = {"mesh", "n_vertices", "n_cells", "segments", "landmarks", "min_quality",
+               "timings_s"}
+#: The voxel of the CT made from the synthetic head (mm): 1.5 voxels is the landmark bound.
+VOXEL_MM = 1.25
+
+needs_headsq = pytest.mark.skipif(not HEADSQ.exists(), reason=f"{HEADSQ} is absent (the "
+                                  "shared data folder is not beside the project)")
+needs_cranium = pytest.mark.skipif(not CRANIUM.exists(), reason=f"{CRANIUM} is absent "
+                                   "(Debian's invesalius-examples; `make test` installs it)")
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """A fresh mesh cache for this module's CT scenes."""
+    path = tmp_path_factory.mktemp("cache")
+    old = os.environ.get("ORTHODIFF_CACHE")
+    os.environ["ORTHODIFF_CACHE"] = str(path)
+    yield path
+    if old is None:
+        del os.environ["ORTHODIFF_CACHE"]
+    else:
+        os.environ["ORTHODIFF_CACHE"] = old
+
+
+@pytest.fixture(scope="module")
+def synthetic_ct(tmp_path_factory):
+    """class1 voxelised at VOXEL_MM (.mha) and its scene file: (ct path, scene file)."""
+    from meshes.synthetic import synthetic_ct, synthetic_scene_file
+    from meshes.volume import write_volume
+
+    d = tmp_path_factory.mktemp("synthetic_ct")
+    write_volume(synthetic_ct("class1", VOXEL_MM), d / "class1.mha")
+    (d / "class1.json").write_text(json.dumps(synthetic_scene_file("class1")))
+    return d / "class1.mha", d / "class1.json"
+
+
+def _ct_scene(tmp_path, ct, scene, *extra, resolution="coarse"):
+    out = tmp_path / "scene"
+    r = _run(CT_SCENE + ["--ct", str(ct), "--osteotomies", str(scene), "--resolution",
+                         resolution, "--out", str(out), "--report", str(out / "ct.json"),
+                         *extra])
+    return r, out
+
+
+def _simulate(tmp_path, name, args, n=1):
+    rep = tmp_path / f"{name}.json"
+    cmd = (_mpirun(n) if n > 1 else []) + SIMULATE + args + ["--report", str(rep)]
+    r = _run(cmd)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(rep.read_text())
+
+
+def test_ct_of_a_synthetic_head_matches_the_head(synthetic_ct, cache):
+    """The pipeline on a CT made from the synthetic class1 head (medium): the landmarks built
+    on its profile lie within 1.5 voxels of the same construction on the head's own mesh, the
+    segments' areas within 10 %, and a 5 mm BSSO advance moves the landmarks as on the head
+    within 0.3 mm."""
+    from inverse.scene import Scene
+    from meshes.anatomy import SKIN
+    from meshes.ct import ct_anatomy
+    from meshes.external import attach_landmarks
+    from meshes.landmarks import profile_landmarks
+    from meshes.synthetic import CASES, case_osteotomies, synthetic_head
+
+    ct, scene_file = synthetic_ct
+    got, info = ct_anatomy(ct, scene_file, "medium")
+    head = synthetic_head("class1", "medium")
+    own = profile_landmarks(head.points, head.facets[head.facet_tags == SKIN],
+                            case_osteotomies(CASES["class1"]).midsagittal)
+    assert {"N", "Prn", "Sn", "Ls", "Li", "Pg", "Me"} <= set(got.landmarks) & set(own)
+    for name, lm in got.landmarks.items():
+        d = np.linalg.norm(lm.position(got.points) - own[name].position(head.points))
+        assert d <= 1.5 * VOXEL_MM, (name, d)
+
+    def areas(a):
+        x = a.points[a.facets]
+        area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+        return {n: area[a.facet_tags == t].sum() for n, t in a.segments.items()}
+
+    a_ct, a_head = areas(got), areas(head)
+    assert set(a_ct) == set(a_head) == {"mandible", "maxilla_L", "maxilla_R"}
+    for n in a_ct:
+        assert abs(a_ct[n] / a_head[n] - 1) < 0.10, (n, a_ct[n], a_head[n])
+    # the same anatomical points on the head's mesh
+    attach_landmarks(head, got.landmark_positions(), tol=1.5 * VOXEL_MM)
+    moved = {}
+    for name, anatomy in (("ct", got), ("head", head)):
+        scene = Scene(anatomy, params_used=["mandible.advance_mm"])
+        rest = scene.landmarks(rest=True)
+        scene.solve({"mandible.advance_mm": 5.0})
+        moved[name] = {k: v - rest[k] for k, v in scene.landmarks().items()}
+    for k in got.landmarks:
+        d = np.linalg.norm(moved["ct"][k] - moved["head"][k])
+        assert d <= 0.3, (k, moved["ct"][k], moved["head"][k])
+
+
+def _plan_recovers(tmp_path, mesh, p_star: dict, landmarks, n_landmarks_min=2):
+    """simulate.py --mesh at p* writes the targets; plan.py --mesh planning p*'s parameters
+    reaches them and finds p*."""
+    pairs = [f"{k}={v}" for k, v in p_star.items()]
+    sim = _simulate(tmp_path, "truth", ["--mesh", str(mesh), "--params-used", ",".join(p_star),
+                                        "--p", *pairs])
+    assert sim["converged"]
+    assert len(landmarks) >= n_landmarks_min
+    targets = tmp_path / "targets.json"
+    targets.write_text(json.dumps({k: sim["landmarks"][k] for k in landmarks}))
+    rep = tmp_path / "plan.json"
+    r = _run(PLAN + ["--mesh", str(mesh), "--targets", str(targets), "--landmarks",
+                     ",".join(landmarks), "--params-used", ",".join(p_star), "--tikhonov", "0",
+                     "--ftol", "1e-9", "--report", str(rep)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    plan = json.loads(rep.read_text())
+    assert max(v["distance_after_mm"] for v in plan["landmarks"].values()) <= 0.01
+    np.testing.assert_allclose(plan["params_optimal"], list(p_star.values()), rtol=1e-3,
+                               atol=1e-3)
+
+
+@needs_cranium
+def test_cranium_lefort_scene_through_the_scripts(tmp_path, cache):
+    """Cranium.inv3 (Debian): ct_scene.py writes the scene and its report; a 5 mm LeFort I
+    advance converges; a LeFort I plan (targets from simulate.py) recovers p*."""
+    r, out = _ct_scene(tmp_path, CRANIUM, EXAMPLES / "cranium.json")
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep = json.loads((out / "ct.json").read_text())
+    assert REPORT_KEYS <= set(rep)
+    assert set(rep["segments"]) == {"maxilla_L", "maxilla_R"}
+    assert {"Prn", "Sn"} <= set(rep["landmarks"])
+    assert rep["min_quality"] > 0.05 and Path(rep["mesh"]).exists()
+    sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "maxilla.advance_mm=5"])
+    assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
+    _plan_recovers(tmp_path, rep["mesh"], {"maxilla.advance_mm": 4.0, "maxilla.vertical_mm":
+                                           -1.5}, sorted(rep["landmarks"]))
+
+
+@needs_headsq
+def test_headsq_double_jaw_scene_through_the_scripts(tmp_path, cache):
+    """headsq (shared data): ct_scene.py, a 5 mm advance of both jaws (the CT's teeth are in
+    occlusion: an independent 5 mm BSSO advance drives the lower incisors through the upper
+    ones and crushes the tissue between them) converges, and a plan of both jaws (targets from
+    simulate.py) recovers p*; a landmark the CT does not hold is refused with one line."""
+    r, out = _ct_scene(tmp_path, HEADSQ, EXAMPLES / "headsq.json")
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep = json.loads((out / "ct.json").read_text())
+    assert set(rep["segments"]) == {"mandible", "maxilla_L", "maxilla_R"}
+    assert {"Li", "Pg", "Me"} <= set(rep["landmarks"])
+    sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "jaws.advance_mm=5"])
+    assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
+    _plan_recovers(tmp_path, rep["mesh"], {"jaws.advance_mm": 3.0, "jaws.pitch_deg": 2.0},
+                   sorted(rep["landmarks"]))
+    targets = tmp_path / "t.json"
+    targets.write_text(json.dumps({"Prn": [100.0, 0.0, -20.0]}))
+    r = _run(PLAN + ["--mesh", rep["mesh"], "--targets", str(targets), "--landmarks", "Prn"])
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]
+    assert r.returncode == 2 and len(errors) == 1 and "Prn" in errors[0], r.stderr[-2000:]
+
+
+@needs_cranium
+@pytest.mark.mpi
+def test_ct_scene_simulates_the_same_on_1_and_2_ranks(tmp_path, cache):
+    """simulate.py --mesh on the Cranium scene: the same landmarks on 1 and 2 ranks."""
+    r, out = _ct_scene(tmp_path, CRANIUM, EXAMPLES / "cranium.json")
+    assert r.returncode == 0, r.stderr[-2000:]
+    mesh = str(out / "scene.vtu")
+    reps = [_simulate(tmp_path, f"n{n}", ["--mesh", mesh, "--p", "maxilla.advance_mm=3",
+                                           "maxilla.vertical_mm=1"], n=n) for n in (1, 2)]
+    for k, x in reps[0]["landmarks"].items():
+        np.testing.assert_allclose(reps[1]["landmarks"][k], x, atol=1e-6)
+
+
+# ---------------------------------------------------------------------- bad input
+def _small_ct(tmp_path, hu_fn=None, name="ct.mha"):
+    """class1 voxelised at 3 mm (fast), optionally changed by hu_fn(array, volume)."""
+    from meshes.synthetic import synthetic_ct
+    from meshes.volume import write_volume
+
+    v = synthetic_ct("class1", 3.0)
+    if hu_fn is not None:
+        hu_fn(v.array, v)
+    write_volume(v, tmp_path / name)
+    return tmp_path / name
+
+
+def _scene_file(tmp_path, **changes):
+    from meshes.synthetic import synthetic_scene_file
+
+    spec = synthetic_scene_file("class1")
+    spec.update(changes)
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(spec))
+    return path
+
+
+def _bone_block(a, v):
+    a[:] = -1000
+    a[10:30, 10:30, 10:30] = 1000   # bone in the air, no tissue around it
+    a[10:30, 10:30, 30:34] = 40
+
+
+def _two_d(tmp_path):
+    import SimpleITK as sitk
+
+    sitk.WriteImage(sitk.Image([16, 16], sitk.sitkInt16), str(tmp_path / "flat.mha"))
+    return tmp_path / "flat.mha"
+
+
+def _garbage(tmp_path):
+    (tmp_path / "noise.mha").write_text("this is no image\n")
+    return tmp_path / "noise.mha"
+
+
+BAD = {
+    "not an image": (lambda t: _garbage(t), {}, [], "cannot read"),
+    "a 2-D image": (lambda t: _two_d(t), {}, [], "3-D volume is needed"),
+    "no body": (lambda t: _small_ct(t, lambda a, v: a.fill(-1000)), {}, [], "no body found"),
+    "bone outside the skin": (lambda t: _small_ct(t, _bone_block), {}, [],
+                              "bone lies outside the skin"),
+    "a plane that cuts no bone": (lambda t: _small_ct(t), {"lefort1": {
+        "point": [0, 0, 500], "normal": [0, 0, 1]}}, [], "cuts no bone"),
+    "a segment with no facets": (lambda t: _small_ct(t), {"midsagittal": {
+        "point": [60, 0, 0], "normal": [1, 0, 0]}}, [], "has no facets"),
+    "a landmark off the skin": (lambda t: _small_ct(t), {}, ["Pg_far"], "off the skin"),
+    "a crop that leaves no tissue": (lambda t: _small_ct(t), {"crop": {
+        "min": [-10, 0, 10], "max": [10, 20, 30]}}, [], "leaves no tissue"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_ct_input_gets_one_line_and_writes_nothing(tmp_path, cache, case):
+    """Each bad input of the pipeline: exit 2, one line naming the problem, no output."""
+    make_ct, changes, landmark, needle = BAD[case]
+    ct = make_ct(tmp_path)
+    scene = _scene_file(tmp_path, **changes)
+    extra = []
+    if landmark:
+        lm = tmp_path / "lm.json"
+        lm.write_text(json.dumps({"Pg": [0.0, 140.0, -64.0]}))   # 40 mm in front of the chin
+        extra = ["--landmarks", str(lm)]
+    r, out = _ct_scene(tmp_path, ct, scene, *extra)
+    lines = r.stderr.strip().splitlines()
+    errors = [ln for ln in lines if ln.startswith("error: ")]
+    assert r.returncode == 2 and errors == lines[-1:], r.stderr[-2000:]
+    assert needle in errors[0], errors[0]
+    assert not out.exists() or not any(out.iterdir())
