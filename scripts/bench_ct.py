@@ -115,7 +115,11 @@ def ct(args, header, table, write_section) -> None:
                    "mesh", "classify", "landmarks", "total", "5 mm advance s (its)",
                    "plan: mean distance, time"], rows)
     body += ["", "Soft-to-hard ratios of the 5 mm advance against the published ranges "
-             "(`bench.py plausibility` names the sources); ✗: outside.", ""]
+             "(`bench.py plausibility` names the sources); ✗: outside. headsq moves both "
+             "jaws en bloc (its teeth are in occlusion), so the lower lip rides on upper and "
+             "lower incisors that both advance, while the published Li range is for a BSSO "
+             "alone; Cranium's field of view ends through the upper lip, whose cut bottom "
+             "face is free, so nothing below holds Ls back.", ""]
     body += table(["CT", "resolution", "treatment", "landmark", "published", "ratio"],
                   ratio_rows)
     write_section("ct", "\n".join(body))
