@@ -733,10 +733,83 @@ def accuracy(args) -> None:
         parts[part](args)
 
 
+#: Most ranks a benchmark may ask for (the machine has 2 cores; more only oversubscribe),
+#: and the largest move (mm) it may ask for: the stress table's largest is 20 mm.
+MAX_RANKS, MAX_MOVE_MM = 64, 100.0
+
+
+def check_args(args) -> None:
+    """Every option of the benchmark in range, lists not empty: ValueError naming the
+    option and what it allows otherwise."""
+    import math
+
+    sys.path.insert(0, str(ROOT))
+    from fem.equilibrium import METHODS, PRESETS
+    from meshes.synthetic import CASES, RESOLUTIONS
+    from scripts.bench_ct import CTS
+
+    def items(name):
+        value = getattr(args, name)
+        got = [v.strip() for v in str(value).split(",") if v.strip()]
+        if not got:
+            raise ValueError(f"--{name.replace('_', '-')} must name at least one item, "
+                             f"got {value!r}")
+        return got
+
+    def among(name, allowed):
+        for v in items(name):
+            if v not in allowed:
+                raise ValueError(f"--{name.replace('_', '-')}: unknown {v!r}; choose from "
+                                 f"{list(allowed)}")
+
+    def number(name, v, lo, hi, integer=False):
+        try:
+            x = int(v) if integer else float(v)
+        except ValueError:
+            x = math.nan
+        if not (math.isfinite(x) and lo <= x <= hi):
+            raise ValueError(f"--{name.replace('_', '-')} must be a finite "
+                             f"{'integer' if integer else 'number'} in [{lo:g}, {hi:g}], got "
+                             f"{v!r}")
+
+    lists = {"resolutions": RESOLUTIONS, "resolutions_tol": RESOLUTIONS,
+             "resolutions_pred": RESOLUTIONS, "resolutions_p1": RESOLUTIONS,
+             "resolutions_p2": RESOLUTIONS, "iterative_up_to": RESOLUTIONS,
+             "resolution_grad": RESOLUTIONS, "solvers": PRESETS, "methods": METHODS,
+             "methods_tol": METHODS, "occlusions": ("free", "final"), "cts": CTS,
+             "parts": ("mesh", "tolerance", "prediction", "gradient", "order")}
+    for name, allowed in lists.items():
+        if getattr(args, name, None) is not None:
+            among(name, allowed)
+    for n in items("ranks") if getattr(args, "ranks", None) is not None else []:
+        number("ranks", n, 1, MAX_RANKS, integer=True)
+    if getattr(args, "ranks_mesh", None) is not None:
+        number("ranks_mesh", args.ranks_mesh, 1, MAX_RANKS, integer=True)
+    for m in items("magnitudes") if getattr(args, "magnitudes", None) is not None else []:
+        number("magnitudes", m, -MAX_MOVE_MM, MAX_MOVE_MM)
+    if args.what == "stress":
+        number("timeout", args.timeout, 1e-3, 1e6)
+        for case in items("cases"):
+            res, _, mag = case.partition(":")
+            if res not in RESOLUTIONS:
+                raise ValueError(f"--cases: {case!r} must be resolution:mm with a resolution "
+                                 f"in {list(RESOLUTIONS)}")
+            number("cases", mag, -MAX_MOVE_MM, MAX_MOVE_MM)
+    elif args.what == "plausibility" and args.cases is not None:
+        among("cases", CASES)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors, exit 2 (the scripts' convention)."""
+
+    def error(self, message):
+        print(f"error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def main():
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="what", required=True)
+    ap = _Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="what", required=True, parser_class=_Parser)
     f = sub.add_parser("forward", help="forward equilibrium across resolutions and solvers")
     f.add_argument("--resolutions", default="tiny,coarse,medium,paper")
     f.add_argument("--solvers", default="direct,cholmod,gamg")
@@ -775,6 +848,10 @@ def main():
     c.add_argument("--cts", default="headsq,cranium")
     c.add_argument("--resolutions", default="coarse,paper")
     args = ap.parse_args()
+    try:
+        check_args(args)
+    except ValueError as e:   # one line, exit 2, before any work (issue 19)
+        ap.error(str(e))
     {"forward": forward, "plan": plan, "stress": stress, "accuracy": accuracy,
      "plausibility": plausibility, "ct": ct}[args.what](args)
 

@@ -112,6 +112,56 @@ def test_ct_of_a_synthetic_head_matches_the_head(synthetic_ct, cache):
         assert d <= 0.3, (k, moved["ct"][k], moved["head"][k])
 
 
+def test_ct_scene_is_deterministic_and_cached(tmp_path, cache):
+    """Two builds of one CT give the same arrays bit for bit (CGAL's seed is fixed); the
+    second `ct_anatomy` call comes from the cache, the same again."""
+    from meshes.ct import build, ct_anatomy
+
+    ct, scene = _small_ct(tmp_path), _scene_file(tmp_path)
+    a, _ = build(ct, scene)
+    b, info_b = ct_anatomy(ct, scene)
+    c, info_c = ct_anatomy(ct, scene)
+    assert not info_b["cached"] and info_c["cached"]
+    for x in (b, c):
+        for key in ("points", "cells", "facets", "facet_tags"):
+            assert np.array_equal(getattr(a, key), getattr(x, key)), key
+        assert x.landmark_positions().keys() == a.landmark_positions().keys()
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd", ".mhd"])
+def test_volume_formats_read_back_in_the_scene_frame(tmp_path, suffix):
+    """NIfTI, NRRD and MetaImage (SimpleITK) give back the same voxels, spacing and origin in
+    the scene's frame as the volume written (through LPS and back)."""
+    from meshes.synthetic import synthetic_ct
+    from meshes.volume import read_volume, write_volume
+
+    v = synthetic_ct("class1", 4.0)
+    write_volume(v, tmp_path / f"ct{suffix}")
+    w = read_volume(tmp_path / f"ct{suffix}")
+    assert np.array_equal(w.array, v.array)
+    np.testing.assert_allclose(w.spacing, v.spacing, atol=1e-6)
+    np.testing.assert_allclose(w.origin, v.origin, atol=1e-4)
+
+
+def test_label_map_input(tmp_path, cache):
+    """A label map (1 tissue, 2 bone, as a 3D Slicer segmentation) gives the scene the CT of
+    the same head gives: the same segments and landmarks."""
+    from meshes.ct import ct_anatomy
+    from meshes.synthetic import CT_HU
+
+    ct = _small_ct(tmp_path)
+    labels = _small_ct(tmp_path, lambda a, v: a.__setitem__(
+        ..., np.where(a >= CT_HU["bone"], 2, np.where(a >= CT_HU["tissue"], 1, 0))),
+        name="labels.mha")
+    scene = _scene_file(tmp_path)
+    from_ct, _ = ct_anatomy(ct, scene)
+    from_map, _ = ct_anatomy(labels, scene, labelmap=True)
+    assert from_map.segments == from_ct.segments
+    assert set(from_map.landmarks) == set(from_ct.landmarks)
+    for k, x in from_ct.landmark_positions().items():
+        assert np.linalg.norm(from_map.landmark_positions()[k] - x) < 3.0, k
+
+
 def _plan_recovers(tmp_path, mesh, p_star: dict, landmarks, n_landmarks_min=2):
     """simulate.py --mesh at p* writes the targets; plan.py --mesh planning p*'s parameters
     reaches them and finds p*."""

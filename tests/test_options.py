@@ -44,6 +44,29 @@ def test_bad_options_get_one_line_and_exit_2(tmp_path, script, args, match):
     assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.mark.parametrize("args,match", [
+    (["forward", "--resolutions", "huge"], "--resolutions: unknown 'huge'"),
+    (["forward", "--ranks", "0"], "--ranks must be a finite integer in [1, 64]"),
+    (["forward", "--solvers", ","], "--solvers must name at least one item"),
+    (["plan", "--magnitudes", "nan"], "--magnitudes must be a finite number"),
+    (["stress", "--timeout", "-1"], "--timeout must be a finite number"),
+    (["stress", "--timeout", "abc"], "invalid float value"),
+    (["stress", "--cases", "paper"], "--cases must be a finite number"),
+    (["ct", "--cts", "foo"], "--cts: unknown 'foo'"),
+    (["plausibility", "--cases", "class9"], "--cases: unknown 'class9'"),
+])
+def test_bench_options_are_checked_before_any_work(args, match):
+    """bench.py: one `error:` line, exit 2, before any benchmark runs (none writes
+    BENCHMARKS.md: the file is unchanged)."""
+    bench = ROOT / "BENCHMARKS.md"
+    before = bench.read_text()
+    r = _run([sys.executable, str(ROOT / "scripts" / "bench.py"), *args], timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == \
+        [ln for ln in r.stderr.strip().splitlines() if ln.startswith("error:")][:1], r.stderr
+    assert match in r.stderr, r.stderr
+    assert bench.read_text() == before
+
+
 def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path):
     """simulate.py --p mandible.advance_mm=40 (bound 15): both warnings, on stderr and in
     the report."""
