@@ -81,6 +81,17 @@ def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path)
         assert w in r.stderr
 
 
+def test_port_range():
+    """Ports (the explorer's server) in [1, 65535], integers: `fem.limits.check` and so
+    `check_options` for any script's ``--port``."""
+    from fem.limits import check
+
+    assert check("port", "8765", "--port") == 8765
+    for bad in ("0", "65536", "80.5", "http", "nan"):
+        with pytest.raises(InputError, match="--port must be an integer in \\[1, 65535\\]"):
+            check("port", bad, "--port")
+
+
 def test_the_python_api_refuses_the_same_values(mandible_scene):
     from inverse.explore import SkinPredictor
     from inverse.planner import gauss_newton
