@@ -66,7 +66,6 @@ SAMPLE_VOXELS = (0.75, 1.5, 2.25)
 #: A facet within this many voxels of a crop face's label boundary, facing out of it, is on
 #: the crop face.
 CROP_FACE_VOXELS = 0.75
-KEYS = ("crop", "skin_hu", "bone_hu", "labels", "occlusion")
 
 
 @contextlib.contextmanager

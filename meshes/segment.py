@@ -32,8 +32,6 @@ from meshes.errors import MeshError
 from meshes.volume import Volume
 
 OUTSIDE, AIRWAY, TISSUE, BONE, CROP, CROP_FREE = 0, 1, 2, 3, 4, 5
-LABEL_NAMES = {OUTSIDE: "outside", AIRWAY: "airway", TISSUE: "tissue", BONE: "bone",
-               CROP: "crop", CROP_FREE: "free crop"}
 #: Thresholds, HU. Skin: halfway between air (-1000) and fat (-100); the skin edge is steep, so
 #: ±100 HU moves it by less than a voxel (headsq: VTK's example uses -524). Bone: above
 #: muscle and enhanced vessels (< 100 HU), below cortical bone (> 700 HU); 3D Slicer's and

@@ -47,11 +47,6 @@ class Volume:
         """Voxel-centre coordinates (n_axis,) mm along one axis."""
         return self.origin[axis] + self.spacing[axis] * np.arange(self.array.shape[axis])
 
-    def index_of(self, points) -> np.ndarray:
-        """Nearest voxel indices (K, 3) of points (K, 3) mm, clipped into the grid."""
-        ijk = np.rint((np.asarray(points, float) - self.origin) / self.spacing).astype(int)
-        return np.clip(ijk, 0, np.array(self.array.shape) - 1)
-
     def crop(self, lo, hi) -> "Volume":
         """The sub-volume of the voxels whose centres lie in the box [lo, hi] (mm)."""
         sl = []
