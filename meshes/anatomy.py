@@ -226,6 +226,8 @@ def tet_quality(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return 12.0 * (3.0 * np.abs(signed_volumes(points, cells))) ** (2.0 / 3.0) / l2
 
 
+#: Local vertices of a tetrahedron's four faces, face i opposite vertex i.
+TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
 #: Vertex indices up to this fit three to an int64 facet key (`_facet_keys`).
 MAX_VERTICES = 2 ** 21 - 1
 
@@ -244,7 +246,7 @@ def facet_components(cells: np.ndarray) -> np.ndarray:
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    faces = np.sort(cells[:, TET_FACES].reshape(-1, 3), axis=1)
     _, face = np.unique(_facet_keys(faces, int(cells.max()) + 1), return_inverse=True)
     cell = np.repeat(np.arange(len(cells)), 4)
     inc = sp.csr_matrix((np.ones(len(face)), (cell, face)), shape=(len(cells), face.max() + 1))
@@ -254,7 +256,7 @@ def facet_components(cells: np.ndarray) -> np.ndarray:
 def boundary_facets(cells: np.ndarray) -> np.ndarray:
     """Sorted vertex triples (B, 3) of facets that belong to exactly one tetrahedron, in
     lexicographic order."""
-    faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    faces = np.sort(cells[:, TET_FACES].reshape(-1, 3), axis=1)
     n = int(cells.max()) + 1
     uniq, count = np.unique(_facet_keys(faces, n), return_counts=True)
     keys = uniq[count == 1]

@@ -39,6 +39,7 @@ from meshes.anatomy import (
     FREE_BONE,
     RIM,
     SKIN,
+    TET_FACES,
     Anatomy,
     _facet_keys,
     facet_components,
@@ -170,8 +171,7 @@ def split_pinched_vertices(points: np.ndarray, cells: np.ndarray):
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    faces = cells[:, local].reshape(-1, 3)
+    faces = cells[:, TET_FACES].reshape(-1, 3)
     keys = _facet_keys(np.sort(faces, axis=1), len(points))
     order = np.argsort(keys, kind="stable")
     pair = np.flatnonzero(keys[order][1:] == keys[order][:-1])
@@ -192,8 +192,7 @@ def split_pinched_vertices(points: np.ndarray, cells: np.ndarray):
 
 def _boundary(cells: np.ndarray, points: np.ndarray):
     """Boundary facets (B, 3) and their outward unit normals (B, 3)."""
-    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    faces = cells[:, local].reshape(-1, 3)
+    faces = cells[:, TET_FACES].reshape(-1, 3)
     opposite = cells.reshape(-1)
     keys = _facet_keys(np.sort(faces, axis=1), len(points))
     _, first, count = np.unique(keys, return_index=True, return_counts=True)
@@ -351,8 +350,7 @@ def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool =
     """(Anatomy, info): `build`, from the cache when the same input and options were meshed
     before (info then has ``cached: True`` and the original timings). ``landmarks``: a file
     (`meshes.landmarks.read_landmark_file`) whose points replace or add to the built ones."""
-    from meshes.external import attach_landmarks
-    from meshes.transforms import read_transform
+    from meshes.external import attach_landmarks, read_occlusion
 
     ct_path, scene_file = Path(ct_path), Path(scene_file)
     if not ct_path.exists():
@@ -377,10 +375,7 @@ def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool =
         tmp.write_text(json.dumps(info))
         os.replace(tmp, info_path)
         info["cached"] = False
-    if spec.get("occlusion") is not None:
-        occ = spec["occlusion"]
-        anatomy.occlusion = read_transform(scene_file.parent / occ if isinstance(occ, str)
-                                           else occ, f"the occlusion in {scene_file}")
+    anatomy.occlusion = read_occlusion(spec.get("occlusion"), scene_file)
     if landmarks is not None:
         from meshes.landmarks import read_landmark_file
 

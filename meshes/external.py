@@ -109,8 +109,8 @@ def attach_landmarks(anatomy: Anatomy, spec: dict, tol: float = LANDMARK_TOL_MM)
     return anatomy.validate()
 
 
-def _occlusion(value, sidecar: Path):
-    """The sidecar's occlusion: a 4×4, or a JSON/ITK file relative to the sidecar."""
+def read_occlusion(value, sidecar: Path):
+    """A scene file's occlusion: None, a 4×4, or a JSON/ITK file relative to the file."""
     from meshes.transforms import read_transform
 
     if value is None:
@@ -160,7 +160,7 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
     anatomy = Anatomy(points, np.concatenate(tets).astype(np.int64), facets, tags, segments,
                       {k: np.asarray(v, float) for k, v in spec.get("pivots", {}).items()},
                       {}, name=Path(path).name,
-                      occlusion=_occlusion(spec.get("occlusion"), sidecar))
+                      occlusion=read_occlusion(spec.get("occlusion"), sidecar))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
@@ -245,13 +245,12 @@ def write_tet_mesh(anatomy: Anatomy, path) -> list:
     import meshio
 
     path = Path(path)
-    roles = {name: tag for name, tag in ROLE_TAGS.items()}
     mesh = meshio.Mesh(anatomy.points, [("tetra", anatomy.cells), ("triangle", anatomy.facets)],
                        cell_data={"tag": [np.zeros(anatomy.n_cells, dtype=np.int32),
                                           anatomy.facet_tags.astype(np.int32)]})
     mesh.write(path)
     sidecar = Path(str(path) + ".json")
-    spec = {"facet_data": "tag", "roles": roles, "segments": anatomy.segments,
+    spec = {"facet_data": "tag", "roles": dict(ROLE_TAGS), "segments": anatomy.segments,
             "pivots": {k: np.asarray(v).tolist() for k, v in anatomy.pivots.items()},
             "landmarks": {k: {"facet": np.asarray(v.facet).tolist(),
                               "weights": np.asarray(v.weights).tolist()}

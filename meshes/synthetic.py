@@ -141,6 +141,15 @@ def _primitives(case: Case):
     return bone, skin, mand, Ry
 
 
+def _distances(case: Case, points: np.ndarray):
+    """Approximate signed distances (skin (K,), bone (K,)) of points (K, 3) to the case's
+    skin and bone primitives: < 0 inside."""
+    bone, extra, _, _ = _primitives(case)
+    d_skin = np.min([e.grown(t).distance(points) for e, t in bone]
+                    + [e.distance(points) for e in extra], axis=0)
+    return d_skin, np.min([e.distance(points) for e, _ in bone], axis=0)
+
+
 def _landmark_rays(case: Case):
     """name -> (origin, direction): the landmark is the outermost skin hit of the ray."""
     _, _, mand, Ry = _primitives(case)
@@ -214,10 +223,7 @@ def build(case_name: str, resolution: str) -> Anatomy:
     points, cells = _gmsh_tissue(case, h)
     facets = boundary_facets(cells)
     mid = points[facets].mean(axis=1)
-    bone, _, _, _ = _primitives(case)
-    d_bone = np.min([e.distance(mid) for e, _ in bone], axis=0)
-    d_skin = np.min([e.grown(t).distance(mid) for e, t in bone]
-                    + [e.distance(mid) for e in _primitives(case)[1]], axis=0)
+    d_skin, d_bone = _distances(case, mid)
     tags = np.full(len(facets), SKIN, dtype=np.int32)
     is_bone = np.abs(d_bone) < np.abs(d_skin)
     tags[is_bone] = case_osteotomies(case).classify(mid[is_bone])
@@ -245,13 +251,11 @@ def _check_volume(case: Case, points, cells, case_name: str, grid_mm: float = 2.
 
     OpenCASCADE booleans on BSpline ellipsoids can silently drop a primitive; this catches it.
     """
-    bone, extra, _, _ = _primitives(case)
     lo, hi = points.min(axis=0), points.max(axis=0)
     axes = [np.arange(a + grid_mm / 2, b, grid_mm) for a, b in zip(lo, hi)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    inside_skin = np.min([e.grown(t).distance(g) for e, t in bone]
-                         + [e.distance(g) for e in extra], axis=0) < 0
-    inside_bone = np.min([e.distance(g) for e, _ in bone], axis=0) < 0
+    d_skin, d_bone = _distances(case, g)
+    inside_skin, inside_bone = d_skin < 0, d_bone < 0
     in_mask = (g[:, 1] > Y_MASK) & (g[:, 2] < Z_MASK)
     expected = np.sum(inside_skin & ~inside_bone & in_mask) * grid_mm ** 3
     meshed = np.abs(signed_volumes(points, cells)).sum()
@@ -300,20 +304,16 @@ CT_HU = {"air": -1000, "tissue": 40, "bone": 1000}
 def synthetic_ct(case_name: str, voxel_mm: float = 1.0, margin_mm: float = 6.0):
     """The synthetic head of a case as a CT (`meshes.volume.Volume`, HU): the primitives'
     skin and bone sampled at voxel centres, the whole head (no face mask: the mask's planes
-    are the crop ``synthetic_crop``). For testing the CT pipeline against the anatomy the
+    are the crop of `synthetic_scene_file`). For testing the CT pipeline against the anatomy the
     head is built from."""
     from meshes.volume import Volume
 
-    case = CASES[case_name]
-    bone, extra, _, _ = _primitives(case)
     lo = np.array([-95.0, Y_MASK - margin_mm, -95.0])
     hi = np.array([95.0, 135.0, Z_MASK + margin_mm])
     axes = [np.arange(a, b + voxel_mm / 2, voxel_mm) for a, b in zip(lo, hi)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    skin = np.min([e.grown(t).distance(g) for e, t in bone] + [e.distance(g) for e in extra],
-                  axis=0) < 0
-    inside_bone = np.min([e.distance(g) for e, _ in bone], axis=0) < 0
-    hu = np.where(inside_bone, CT_HU["bone"], np.where(skin, CT_HU["tissue"], CT_HU["air"]))
+    d_skin, d_bone = _distances(CASES[case_name], g)
+    hu = np.where(d_bone < 0, CT_HU["bone"], np.where(d_skin < 0, CT_HU["tissue"], CT_HU["air"]))
     shape = tuple(len(a) for a in axes)
     return Volume(hu.reshape(shape).astype(np.int16), np.full(3, voxel_mm), lo,
                   f"{case_name} voxelised at {voxel_mm:g} mm")
