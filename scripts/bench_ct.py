@@ -20,8 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: plan's parameters). Goals: headsq's chin and lower lip 4 mm forward (a retruded lower
 #: face, both jaws advanced in the CT's occlusion); Cranium's subnasale 3 mm forward and the
 #: nasal tip 0.6 mm (a retruded midface, LeFort I advance; the nose follows 0.13-0.33 of it).
-#: A first goal of Sn 3 mm forward and 1 mm down asked for 5.9 mm of impaction (Sn rises
-#: 0.37 mm a mm of advance here) and tissue compressed to 48 %.
+#: Sn 3 mm forward and 1 mm down would ask for 5.9 mm of impaction (Sn rises 0.37 mm a mm
+#: of advance here) and compress the tissue to 48 % (plan.py, paper).
 CTS = {
     "headsq": (ROOT.parent / "shared" / "data" / "headsq" / "headsq.mhd",
                ROOT / "meshes" / "examples" / "headsq.json", "jaws.advance_mm",
