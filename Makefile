@@ -4,13 +4,16 @@ VENV := .venv
 PY := $(VENV)/bin/python
 DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py python3-petsc4py \
             libopenblas0-pthread mpi-default-bin python3-venv python3-matplotlib python3-scipy \
-            python3-pygalmesh invesalius-examples
+            python3-pygalmesh invesalius-examples \
+            python3-fastapi python3-uvicorn chromium chromium-driver python3-selenium
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: demo test install bench lint clean
 
-install: $(VENV)/.installed
+WEB := scripts/web
+
+install: $(VENV)/.installed $(WEB)/node_modules/.installed
 
 # Debian packages: installed only when one is missing (dpkg-query), never twice.
 .deb-installed: Makefile
@@ -18,7 +21,8 @@ install: $(VENV)/.installed
 	  | grep -q 'install ok installed' || echo $$p; done); \
 	if [ -n "$$missing" ]; then echo "apt-get install $$missing"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; fi
-	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio, pygalmesh" && touch $@
+	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio, pygalmesh, fastapi, uvicorn, selenium" \
+	  && touch $@
 
 # PyPI packages (SimpleITK) are installed against a constraints file that pins Debian's numpy
 # and scipy, so pip can never replace the numpy dolfinx was built with.
@@ -26,6 +30,14 @@ $(VENV)/.installed: .deb-installed pyproject.toml
 	@test -x $(PY) || /usr/bin/python3 -m venv --system-site-packages $(VENV)
 	@/usr/bin/python3 -c "import numpy, scipy; print(f'numpy=={numpy.__version__}\nscipy=={scipy.__version__}')" > $(VENV)/constraints.txt
 	$(PY) -m pip install -q -c $(VENV)/constraints.txt -e '.[test,ct]'
+	@touch $@
+
+# The explorer page's three.js, from the npm registry at the version of the lock file
+# (Debian's npm where the machine has none).
+$(WEB)/node_modules/.installed: $(WEB)/package.json $(WEB)/package-lock.json .deb-installed
+	@command -v npm >/dev/null || (apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq npm)
+	cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error
 	@touch $@
 
 demo: install

@@ -1144,6 +1144,11 @@ class Equilibrium:
         self._stats.total = time.perf_counter() - t0
         return self._stats
 
+    @property
+    def stats(self) -> SolveStats:
+        """What the last solve did, with the relax iterations of corrections since."""
+        return self._stats
+
     def snapshot(self):
         """(p, u, solved_xtol) of the current equilibrium, for `restore`."""
         return self.p.copy(), self.u_eq.copy(), self.solved_xtol

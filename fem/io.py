@@ -59,7 +59,8 @@ def _staged(target: Path, comm: MPI.Comm):
             raise KeyboardInterrupt(f"signal {signum}")
 
 
-def _jsonable(x):
+def jsonable(x):
+    """``json`` default: numpy arrays and scalars as lists and numbers."""
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, (np.floating, np.integer)):
@@ -80,7 +81,7 @@ def write_json(path, data: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
     """Write ``data`` as JSON to ``path`` atomically (rank 0 writes)."""
     def write(p):
         with open(p, "w") as fh:
-            json.dump(data, fh, indent=2, default=_jsonable)
+            json.dump(data, fh, indent=2, default=jsonable)
             fh.write("\n")
     write_on_root(path, write, comm)
 

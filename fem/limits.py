@@ -77,7 +77,7 @@ OPTIONS = {
     "substep_mm": Range(0.0, math.inf, open_lo=True),           # mm; inf: one step
     "iterations": Range(1, 100, integer=True),                  # relax steps per substep
     "scale": Range(-1e3, 1e3),                                  # --scales entries
-    "port": Range(1, 65535, integer=True),
+    "port": Range(0, 65535, integer=True),                      # 0: any free port
     "xtol": Range(XTOL_FLOOR_MM, 100.0),                        # mm
     "max_it": Range(1, MAX_SNES_ITERATIONS, integer=True),
     "max_bisections": Range(0, MAX_BISECTIONS, integer=True),

@@ -36,7 +36,7 @@ class SkinPredictor:
 
     Attributes:
         vertices: (N,) original indices of the skin vertices (same on every rank).
-        x0: (N, 3) skin positions at p0, mm. S: (N, 3, Np) mm per parameter unit.
+        x0: (N, 3) skin positions at p0, x_rest at rest, mm. S: (N, 3, Np) mm per unit.
         p0: (Np,) parameters of the equilibrium. It keeps x(p0) and dx/dp on the volume
         (Np + 1 vectors), so corrections do not depend on where the scene is afterwards.
     """
@@ -48,6 +48,7 @@ class SkinPredictor:
         self.op = dom.vertex_operator(self.vertices)
         self.p0 = self.eq.p.copy()
         self.x0 = self.op.apply(self.eq.u_eq.array)
+        self.x_rest = self.op.apply(np.zeros_like(self.eq.u_eq.array))
         self.S = point_sensitivity(self.eq, self.op)
         # x(p0) and dx/dp on the volume: corrections start from them wherever the scene is
         self._u0 = self.eq.u_eq.copy()

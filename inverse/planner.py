@@ -222,6 +222,32 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
                       timings)
 
 
+def plan_report(scene, result: PlanResult, targets: dict, before: dict) -> dict:
+    """The JSON report of a plan (keys in README.md): the landmark table (``targets`` and
+    ``before`` {name: (3,)} mm), parameters, history, timings and the bone motions."""
+    after = scene.landmarks(list(targets))
+    table = {}
+    for n, t in targets.items():
+        t = np.asarray(t, dtype=float)
+        table[n] = {"target": t, "before": before[n], "after": after[n],
+                    "distance_before_mm": float(np.linalg.norm(before[n] - t)),
+                    "distance_after_mm": float(np.linalg.norm(after[n] - t))}
+    mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
+    return {
+        "case": scene.case or scene.domain.name, "resolution": scene.resolution,
+        "degree": scene.domain.degree,
+        "n_vertices": scene.domain.n_vertices, "n_ranks": scene.domain.comm.size,
+        "param_names": scene.param_names, "params_initial": result.params_initial,
+        "params_optimal": result.params, "landmarks": table,
+        "mean_distance_before_mm": mean("distance_before_mm"),
+        "mean_distance_after_mm": mean("distance_after_mm"),
+        "gn_iterations": result.gn_iterations, "forward_solves": result.forward_solves,
+        "converged": result.converged, "stop_reason": result.reason,
+        "history": result.history, "timings_s": result.timings,
+        **scene.motion_report(),
+    }
+
+
 def _log(h):
     log.info("GN %2d  T = %.4e mm²  mean distance %.4f mm  step %.3g  alpha %.3g  "
              "Newton %d  %.1f s", h["iteration"], h["T"], h["mean_distance_mm"], h["step"],

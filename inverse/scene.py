@@ -114,6 +114,11 @@ class Scene:
         p = self.params if p is None else self.param_vector(p)
         return self.treatment.transforms(p, self.domain.pivots)
 
+    def motion_report(self) -> dict:
+        """Report keys of the current equilibrium's bone motions: ``transforms`` {segment:
+        4×4} and ``occlusion`` (4×4, or None when the jaws are free)."""
+        return {"transforms": self.transforms(), "occlusion": self.treatment.occlusion}
+
     def params_from_transforms(self, transforms: dict) -> np.ndarray:
         """The parameters (Np,) that move the segments by ``transforms`` ({segment: 4×4};
         unnamed segments stay put), see `Treatment.params_from_transforms`."""

@@ -166,14 +166,6 @@ def warn_bounds(scene, p, comm) -> list[str]:
     return warnings
 
 
-def transforms_report(scene) -> dict:
-    """Report keys of the current equilibrium's bone motions: ``transforms`` {segment: 4×4}
-    and ``occlusion`` (4×4, or None when the jaws are free)."""
-    occ = scene.treatment.occlusion
-    return {"transforms": scene.transforms(),
-            "occlusion": None if occ is None else occ}
-
-
 def write_transforms(scene, out_dir, comm) -> None:
     """One ITK transform file ``<segment>.tfm`` per segment into ``out_dir`` (3D Slicer)."""
     from pathlib import Path

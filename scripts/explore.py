@@ -124,7 +124,7 @@ def _write(scene, pred, out: Path, comm):
     dom = scene.domain
     write_npz(out / "skin_sensitivity.npz", {
         "vertices": pred.vertices,
-        "points_rest": pred.op.apply(np.zeros_like(scene.eq.u.x.array)),
+        "points_rest": pred.x_rest,
         "points": pred.x0, "triangles": dom.skin_triangles(pred.vertices), "S": pred.S,
         "param_names": np.array(scene.param_names), "p0": pred.p0}, comm)
     fields = []

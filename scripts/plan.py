@@ -26,36 +26,8 @@ from scripts._common import (  # noqa: E402
     run_main,
     scene_from_args,
     scene_parser,
-    transforms_report,
     write_transforms,
 )
-
-
-def plan_report(scene, result, targets, before, comm) -> dict:
-    """The JSON report of a plan (see README): landmark table, parameters, history."""
-    import numpy as np
-
-    after = scene.landmarks(list(targets))
-    table = {}
-    for n, t in targets.items():
-        t = np.asarray(t, dtype=float)
-        table[n] = {"target": t, "before": before[n], "after": after[n],
-                    "distance_before_mm": float(np.linalg.norm(before[n] - t)),
-                    "distance_after_mm": float(np.linalg.norm(after[n] - t))}
-    mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
-    return {
-        "case": scene.case or scene.domain.name, "resolution": scene.resolution,
-        "degree": scene.domain.degree,
-        "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
-        "param_names": scene.param_names, "params_initial": result.params_initial,
-        "params_optimal": result.params, "landmarks": table,
-        "mean_distance_before_mm": mean("distance_before_mm"),
-        "mean_distance_after_mm": mean("distance_after_mm"),
-        "gn_iterations": result.gn_iterations, "forward_solves": result.forward_solves,
-        "converged": result.converged, "stop_reason": result.reason,
-        "history": result.history, "timings_s": result.timings,
-        **transforms_report(scene),
-    }
 
 
 def _load_checkpoint(path, signature: dict, comm) -> dict:
@@ -120,7 +92,7 @@ def main(argv=None):
     names = obj.names
     targets = dict(zip(names, obj.targets.tolist()))
     before = scene.landmarks(names)
-    from inverse.planner import gauss_newton
+    from inverse.planner import gauss_newton, plan_report
 
     ckpt = args.checkpoint or (args.report + ".checkpoint.json" if args.report else None)
     state = {"signature": {"case": scene.case or scene.domain.name,
@@ -151,7 +123,7 @@ def main(argv=None):
         result.gn_iterations += offset
         result.params_initial = np.asarray(state["params_initial"], dtype=float)
         before = {n: np.asarray(v, dtype=float) for n, v in state["before"].items()}
-    report = plan_report(scene, result, targets, before, comm)
+    report = plan_report(scene, result, targets, before)
     report["resumed_from_iteration"] = offset if args.resume else None
     report["timings_s"] = dict(report["timings_s"], mesh=scene.timings["mesh"],
                                compile=scene.timings["compile"])

@@ -26,7 +26,6 @@ from scripts._common import (  # noqa: E402
     run_main,
     scene_from_args,
     scene_parser,
-    transforms_report,
     warn_bounds,
     write_transforms,
 )
@@ -86,7 +85,7 @@ def main(argv=None):
         "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
         "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
         "min_det_F": stats.min_det_F, "warnings": warnings + stats.warnings,
-        **transforms_report(scene),
+        **scene.motion_report(),
         "solver": scene.eq.solver_name, "timings_s": timings,
         "peak_rss_mb": peak_rss_mb(comm),
     }

@@ -82,13 +82,14 @@ def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path)
 
 
 def test_port_range():
-    """Ports (the explorer's server) in [1, 65535], integers: `fem.limits.check` and so
-    `check_options` for any script's ``--port``."""
+    """Ports (the explorer's server) in [0, 65535], integers (0: any free port):
+    `fem.limits.check` and so `check_options` for any script's ``--port``."""
     from fem.limits import check
 
     assert check("port", "8765", "--port") == 8765
-    for bad in ("0", "65536", "80.5", "http", "nan"):
-        with pytest.raises(InputError, match="--port must be an integer in \\[1, 65535\\]"):
+    assert check("port", "0", "--port") == 0
+    for bad in ("-1", "65536", "80.5", "http", "nan"):
+        with pytest.raises(InputError, match="--port must be an integer in \\[0, 65535\\]"):
             check("port", bad, "--port")
 
 

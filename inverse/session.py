@@ -1,0 +1,241 @@
+"""An interactive exploration session (paper Fig. 5): the state behind the browser explorer.
+
+`Session` keeps a scene at an equilibrium x(p0) with its skin sensitivities
+(`inverse.explore.SkinPredictor`) and answers what a surgeon asks of it: the true equilibrium
+at p, warm-started from the first-order prediction (Fig. 5b compares the two), the corrected
+prediction, re-linearisation at p, a plan to landmark targets, and the parameters whose true
+equilibrium is closest to a predicted face (Fig. 5c). After a plan or a match the session is
+re-linearised at its result, so the first-order sliders start from there.
+
+Every method that computes is collective: all ranks call it with the same arguments and get
+the same answer. `Session.request_params` and `Session.request_targets` validate a request's
+values; no HTTP here (`scripts/explore_web.py`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from fem.limits import check
+from inverse.explore import SkinPredictor, fit_surface
+from inverse.planner import gauss_newton, plan_report
+from inverse.treatment import FTOL, TIKHONOV
+from meshes.errors import InputError
+
+#: What a plan request may ask for (``occlusion``), and the parameters it plans: those of
+#: ``scripts/plan.py`` (`inverse.treatment.PLAN_PARAMS`, `JAWS_PARAMS`).
+OCCLUSIONS = ("final", "free")
+
+
+def _finite_number(name: str, value) -> float:
+    """A JSON number that is finite, else `InputError`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value):
+        raise InputError(f"{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def check_targets(rest: dict, targets) -> dict:
+    """{landmark: [x, y, z]} from a request or a file: an object of known landmarks (``rest``
+    {name: (3,)} mm), finite 3-vectors in mm near the face (`inverse.objective.load_targets`);
+    `InputError` otherwise. Local: no communication."""
+    from inverse.objective import load_targets
+
+    if not isinstance(targets, dict) or not targets:
+        raise InputError("'targets' must be an object {landmark: [x, y, z]} mm")
+    for n, x in targets.items():
+        if not isinstance(x, list) or len(x) != 3:
+            raise InputError(f"target {n} must be [x, y, z] in mm, got {x!r}")
+        for c in x:
+            _finite_number(f"target {n}", c)
+    names, pts = load_targets(targets, rest)
+    return dict(zip(names, pts.tolist()))
+
+
+class Session:
+    """Exploration around an equilibrium.
+
+    Args:
+        scene: the `Scene` to explore (its occlusion "final" or "free").
+        make_scene: ``make_scene(occlusion) -> Scene``, called when a plan asks for the other
+            occlusion (None: such a plan is refused).
+        p0: (Np,) start equilibrium (default 0).
+        targets: {landmark: [x, y, z]} mm shown and planned to (default: the case's goal,
+            none for an external mesh).
+    """
+
+    def __init__(self, scene, make_scene=None, p0=None, targets=None):
+        self.occlusion = "free" if scene.treatment.occlusion is None else "final"
+        self._make_scene, self.scenes = make_scene, {self.occlusion: scene}
+        self.rest_landmarks = scene.landmarks(rest=True)   # the same in every scene
+        if targets is None and scene.case is not None:
+            targets = scene.default_targets()
+        self.targets = None if targets is None else check_targets(self.rest_landmarks, {
+            n: np.asarray(x, dtype=float).tolist() for n, x in targets.items()})
+        self.pred = None
+        self.relinearise(np.zeros(len(scene.param_names)) if p0 is None
+                         else scene.param_vector(p0))
+
+    @property
+    def scene(self):
+        return self.scenes[self.occlusion]
+
+    def request_params(self, values) -> np.ndarray:
+        """(Np,) from a request's ``{name: value}``: known names, finite numbers within the
+        parameters' bounds; names not given keep their value at p0. `InputError` otherwise.
+        Local: no communication."""
+        if not isinstance(values, dict):
+            raise InputError("'p' must be an object {parameter: value}")
+        names = self.scene.param_names
+        unknown = [k for k in values if k not in names]
+        if unknown:
+            raise InputError(f"unknown parameter(s) {unknown}; known: {names}")
+        p = self.pred.p0.copy()
+        for k, v in values.items():
+            p[names.index(k)] = _finite_number(k, v)
+        bad = self.scene.treatment.outside_bounds(p)
+        if bad:
+            raise InputError(bad[0])
+        return p
+
+    def request_targets(self, targets=None) -> dict:
+        """Validated targets of a plan request (`check_targets`); None: the session's."""
+        if targets is None:
+            if self.targets is None:
+                raise InputError("no targets: give 'targets' {landmark: [x, y, z]} mm")
+            return self.targets
+        return check_targets(self.rest_landmarks, targets)
+
+    # ------------------------------------------------------------------ answers
+    def payload(self) -> dict:
+        """The scene as the page needs it (GET /api/scene): parameters, skin triangles,
+        skin at rest and at p0 (N, 3) mm, landmarks at p0 and their sensitivities
+        (L, 3, Np) mm per unit, targets."""
+        scene, pred = self.scene, self.pred
+        tr = scene.treatment
+        return {"param_names": tr.names, "units": [q.unit for q in tr.params],
+                "bounds": tr.bounds.tolist(), "p0": pred.p0.tolist(),
+                "occlusion": self.occlusion,
+                "triangles": scene.domain.skin_triangles(pred.vertices).tolist(),
+                "vertices": pred.x0.tolist(), "vertices_rest": pred.x_rest.tolist(),
+                "landmarks": {n: x.tolist() for n, x in zip(pred.landmark_names, pred.lm0)},
+                "landmark_sensitivity": pred.lm_S.tolist(),
+                "targets": self.targets}
+
+    def sensitivity_bytes(self) -> bytes:
+        """S_skin (N, 3, Np) as little-endian float32 in C order (GET /api/sensitivity)."""
+        return np.ascontiguousarray(self.pred.S, dtype="<f4").tobytes()
+
+    def _answer(self, skin, landmarks, p, iterations: int, seconds: float) -> dict:
+        first = self.pred.predict(p - self.pred.p0)
+        return {"p": dict(zip(self.scene.param_names, p.tolist())), "vertices": skin.tolist(),
+                "landmarks": {n: np.asarray(x).tolist() for n, x in landmarks.items()},
+                "newton_iterations": int(iterations), "seconds": seconds,
+                "first_order_error_max_mm": float(np.linalg.norm(skin - first, axis=1).max())}
+
+    def solve(self, p) -> dict:
+        """The true equilibrium at p (Np,), warm-started from the first-order prediction:
+        skin, landmarks, iterations, seconds and the largest distance of the first-order
+        skin x0 + S dp from it (Fig. 5b). Collective."""
+        t = time.perf_counter()
+        stats = self.scene.solve(p)
+        seconds = time.perf_counter() - t
+        return self._answer(self._skin(), self.scene.landmarks(), p,
+                            stats.newton_iterations, seconds)
+
+    def corrected(self, p) -> dict:
+        """The corrected prediction at p (`SkinPredictor.corrected`), the keys of `solve`.
+        Collective."""
+        eq = self.scene.eq
+        before = eq.stats.newton_iterations
+        t = time.perf_counter()
+        skin, landmarks = self.pred.corrected(p - self.pred.p0)
+        seconds = time.perf_counter() - t
+        return self._answer(skin, landmarks, p, eq.stats.newton_iterations - before, seconds)
+
+    def relinearise(self, p) -> dict:
+        """Solve at p and make it the new p0, with new skin sensitivities. Collective."""
+        t = time.perf_counter()
+        self.scene.solve(p)
+        if self.pred is not None:
+            self.pred.destroy()
+        self.pred = SkinPredictor(self.scene)
+        return {"p0": self.pred.p0.tolist(), "seconds": time.perf_counter() - t}
+
+    def plan(self, targets: dict, occlusion: str, progress=None, tikhonov: float = TIKHONOV,
+             ftol: float = FTOL, max_iterations: int = 20) -> dict:
+        """Plan from the current p0 to ``targets`` (validated, {name: [x, y, z]} mm) with
+        the occlusion "final" (jaws.* motions) or "free" (`PLAN_PARAMS`), then re-linearise
+        at the plan. A plan in the other occlusion starts from the parameters that reach p0's
+        bone motions there where they can (otherwise from 0). ``progress(entry)`` gets each
+        Gauss-Newton history entry; tikhonov, ftol, max_iterations as in ``scripts/plan.py``.
+        Returns the plan report (`inverse.planner.plan_report`) with ``seconds``.
+        Collective."""
+        if occlusion not in OCCLUSIONS:
+            raise InputError(f"'occlusion' must be one of {list(OCCLUSIONS)}, got {occlusion!r}")
+        tikhonov, ftol = check("tikhonov", tikhonov), check("ftol", ftol)
+        max_iterations = check("max_iterations", max_iterations)
+        t = time.perf_counter()
+        start = self.pred.p0
+        if occlusion != self.occlusion:
+            if self._make_scene is None and occlusion not in self.scenes:
+                raise InputError(f"this explorer's scene has the occlusion {self.occlusion!r} "
+                                 "only")
+            motions = self.scene.transforms()
+            if occlusion not in self.scenes:
+                self.scenes[occlusion] = self._make_scene(occlusion)
+            self.occlusion = occlusion
+            try:
+                start = self.scene.params_from_transforms(motions)
+            except InputError:
+                start = np.zeros(len(self.scene.param_names))
+            lo, hi = self.scene.treatment.bounds.T
+            start = np.clip(start, lo, hi)
+        scene = self.scene
+        obj = scene.objective(targets, tikhonov=tikhonov)
+        scene.solve(start)
+        before = scene.landmarks(list(targets))
+        result = gauss_newton(scene, obj, p0=start, ftol=ftol, max_iterations=max_iterations,
+                              callback=None if progress is None
+                              else lambda p, entry: progress(entry))
+        report = plan_report(scene, result, targets, before)
+        self.targets = {n: list(x) for n, x in targets.items()}
+        self.relinearise(result.params)
+        report["seconds"] = time.perf_counter() - t
+        return report
+
+    def match(self, p) -> dict:
+        """Fig. 5c: the parameters whose true equilibrium is closest to the first-order skin
+        at p (least squares over every skin vertex, from p0), then re-linearise there.
+        Returns ``p``, ``distance_max_mm``/``distance_mean_mm`` of the true skin from the
+        predicted one, ``gn_iterations``, ``seconds``. Collective."""
+        t = time.perf_counter()
+        surface = self.pred.predict(p - self.pred.p0)
+        result = fit_surface(self.scene, self.pred, surface)
+        d = np.linalg.norm(self._skin() - surface, axis=1)
+        out = {"p": dict(zip(self.scene.param_names, result.params.tolist())),
+               "distance_max_mm": float(d.max()), "distance_mean_mm": float(d.mean()),
+               "gn_iterations": result.gn_iterations, "converged": result.converged}
+        self.relinearise(result.params)
+        out["seconds"] = time.perf_counter() - t
+        return out
+
+    def export(self, p) -> dict:
+        """The plan a VSP program takes (the page's Export): parameters, every segment's
+        rigid motion (4×4, mm, scene frame) and the occlusion at p."""
+        tr = self.scene.treatment
+        return {"param_names": tr.names, "params": dict(zip(tr.names, p.tolist())),
+                "units": dict(zip(tr.names, (q.unit for q in tr.params))),
+                "transforms": {s: T.tolist() for s, T in self.scene.transforms(p).items()},
+                "occlusion": None if tr.occlusion is None else tr.occlusion.tolist(),
+                "targets": self.targets}
+
+    def _skin(self) -> np.ndarray:
+        return self.pred.op.apply(self.scene.eq.u_eq.array)
+
+    def destroy(self):
+        if self.pred is not None:
+            self.pred.destroy()

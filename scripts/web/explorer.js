@@ -1,0 +1,424 @@
+// orthodiff explorer: the skin at x0 + S dp (paper eq. 7) redrawn at every slider event,
+// true and corrected solves, re-linearisation, planning and matching through the JSON API
+// of scripts/explore_web.py. three.js comes from npm (scripts/web/node_modules), served
+// locally. Units: mm and degrees, in the scene's frame (x left, y anterior, z superior).
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+
+const $ = (id) => document.getElementById(id);
+// Colour map stops (the legend's CSS gradient): value in [0, 1] -> RGB.
+const STOPS = [[0x30, 0x12, 0x3b], [0x46, 0x86, 0xfb], [0x1b, 0xe5, 0xb5],
+               [0xa4, 0xfc, 0x3c], [0xfb, 0x80, 0x22], [0x7a, 0x04, 0x03]].map(
+  (c) => c.map((v) => v / 255));
+
+const state = {
+  names: [], units: [], bounds: [], p0: null, p: null,
+  x0: null, rest: null, S: null, nP: 0, nV: 0,
+  lm0: null, lmS: null, lmNames: [], targets: null,
+  shown: null,        // Float32Array (nV*3) drawn now: the prediction, or a solve's answer
+  error: null,        // per-vertex |answer - prediction| after Solve/Corrected, else null
+  pending: null,      // timeStamp of the slider event waiting for its frame
+  busy: false,
+};
+
+const explorer = {
+  ready: false,
+  lastFrameMs: NaN,
+  frames: 0,
+  setParams,
+  skinPositions: () => Float32Array.from(state.shown),
+  params: () => Object.fromEntries(state.names.map((n, i) => [n, state.p[i]])),
+  errorMapMax: () => (state.error ? state.error.reduce((a, b) => Math.max(a, b), 0) : null),
+  lastError: null,
+};
+window.explorer = explorer;
+
+// ---------------------------------------------------------------- three.js scene
+const view = $('view');
+const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+renderer.setPixelRatio(1);
+view.appendChild(renderer.domElement);
+const scene3 = new THREE.Scene();
+scene3.background = new THREE.Color(0x1d2026);
+const camera = new THREE.PerspectiveCamera(30, 1, 1, 5000);
+camera.up.set(0, 0, 1);
+const controls = new OrbitControls(camera, renderer.domElement);
+controls.addEventListener('change', () => requestFrame());
+scene3.add(new THREE.HemisphereLight(0xffffff, 0x404040, 0.7));
+const sun = new THREE.DirectionalLight(0xffffff, 1.1);
+scene3.add(sun);
+const geometry = new THREE.BufferGeometry();
+const mesh = new THREE.Mesh(geometry, new THREE.MeshLambertMaterial(
+  { vertexColors: true, side: THREE.DoubleSide }));
+mesh.frustumCulled = false;   // the skin moves: its bounding sphere is the rest one's
+scene3.add(mesh);
+const markers = new THREE.Group();
+scene3.add(markers);
+let center = new THREE.Vector3(), radius = 100;
+
+function resize() {
+  const w = view.clientWidth, h = view.clientHeight;
+  renderer.setSize(w, h);
+  camera.aspect = w / h;
+  camera.updateProjectionMatrix();
+  requestFrame();
+}
+window.addEventListener('resize', resize);
+
+function look(dir) {   // front: from anterior (+y); profile: from the patient's right (-x)
+  camera.position.copy(center).addScaledVector(dir, 3.2 * radius);
+  controls.target.copy(center);
+  controls.update();
+  requestFrame();
+}
+
+// ---------------------------------------------------------------- API
+async function api(path, body) {
+  const opts = body === undefined ? {} : {
+    method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) };
+  const r = await fetch(path, opts);
+  const isJson = (r.headers.get('content-type') || '').includes('json');
+  const data = isJson ? await r.json() : await r.arrayBuffer();
+  if (!r.ok) throw new Error(`${path}: ${r.status} ${isJson ? data.error : ''}`);
+  return data;
+}
+
+async function loadScene() {
+  const [s, buf] = await Promise.all([api('/api/scene'), api('/api/sensitivity')]);
+  state.names = s.param_names; state.units = s.units; state.bounds = s.bounds;
+  state.p0 = Float64Array.from(s.p0); state.p = Float64Array.from(s.p0);
+  state.nP = s.param_names.length; state.nV = s.vertices.length;
+  state.x0 = Float64Array.from(s.vertices.flat());
+  state.rest = Float64Array.from(s.vertices_rest.flat());
+  state.S = new Float32Array(buf);    // (nV, 3, nP), little-endian, C order
+  state.lmNames = Object.keys(s.landmarks);
+  state.lm0 = Float64Array.from(state.lmNames.flatMap((n) => s.landmarks[n]));
+  state.lmS = Float64Array.from(s.landmark_sensitivity.flat(2));   // (L, 3, nP)
+  state.targets = s.targets;
+  $('occlusion').value = s.occlusion;
+  const first = geometry.getAttribute('position') === undefined
+    || geometry.getAttribute('position').count !== state.nV;
+  if (first) {
+    geometry.setAttribute('position', new THREE.BufferAttribute(new Float32Array(3 * state.nV), 3));
+    geometry.setAttribute('color', new THREE.BufferAttribute(new Float32Array(3 * state.nV), 3));
+    geometry.setIndex(s.triangles.flat());
+  }
+  state.shown = new Float32Array(3 * state.nV);
+  state.error = null;
+  buildSliders();
+  buildMarkers();
+  predict();
+  if (first) {
+    geometry.getAttribute('position').array.set(state.shown);
+    geometry.computeBoundingSphere();
+    center = geometry.boundingSphere.center.clone();
+    radius = geometry.boundingSphere.radius;
+    camera.near = radius / 20; camera.far = radius * 20;
+    look(new THREE.Vector3(0, 1, 0));
+  }
+}
+
+// ---------------------------------------------------------------- first-order prediction
+function dp() {
+  const d = new Float64Array(state.nP);
+  for (let j = 0; j < state.nP; j++) d[j] = state.p[j] - state.p0[j];
+  return d;
+}
+
+function predict() {   // state.shown = x0 + S dp, a typed-array loop over the moved parameters
+  const d = dp(), nP = state.nP, S = state.S, x0 = state.x0, out = state.shown;
+  const moved = [];
+  for (let j = 0; j < nP; j++) if (d[j] !== 0) moved.push(j);
+  for (let i = 0, n = x0.length; i < n; i++) {
+    let v = x0[i];
+    const row = i * nP;
+    for (const j of moved) v += S[row + j] * d[j];
+    out[i] = v;
+  }
+  state.error = null;
+}
+
+function predictedLandmarks() {
+  const d = dp(), nP = state.nP, out = new Float64Array(state.lm0.length);
+  for (let i = 0; i < out.length; i++) {
+    let v = state.lm0[i];
+    for (let j = 0; j < nP; j++) v += state.lmS[i * nP + j] * d[j];
+    out[i] = v;
+  }
+  return out;
+}
+
+// ---------------------------------------------------------------- drawing
+function colourise() {
+  const n = state.nV, col = geometry.getAttribute('color').array, x = state.shown;
+  let value, title;
+  if (state.error) {
+    value = (i) => state.error[i];
+    title = 'first-order error |true - x0 - S dp| mm';
+  } else {
+    const ref = $('colour').value === 'rest' ? state.rest : state.x0;
+    value = (i) => Math.hypot(x[3 * i] - ref[3 * i], x[3 * i + 1] - ref[3 * i + 1],
+                              x[3 * i + 2] - ref[3 * i + 2]);
+    title = `displacement from ${$('colour').value === 'rest' ? 'rest' : 'p0'} mm`;
+  }
+  const vals = new Float32Array(n);
+  let hi = 0;
+  for (let i = 0; i < n; i++) { vals[i] = value(i); if (vals[i] > hi) hi = vals[i]; }
+  const scale = hi > 1e-9 ? 1 / hi : 0;
+  for (let i = 0; i < n; i++) {
+    const t = Math.min(vals[i] * scale, 1) * (STOPS.length - 1);
+    const k = Math.min(Math.floor(t), STOPS.length - 2), f = t - k;
+    const a = STOPS[k], b = STOPS[k + 1];
+    col[3 * i] = a[0] + f * (b[0] - a[0]);
+    col[3 * i + 1] = a[1] + f * (b[1] - a[1]);
+    col[3 * i + 2] = a[2] + f * (b[2] - a[2]);
+  }
+  geometry.getAttribute('color').needsUpdate = true;
+  $('legend-title').textContent = title;
+  $('legend-hi').textContent = hi.toFixed(2);
+}
+
+function buildMarkers() {
+  markers.clear();
+  const r = Math.max(radius / 90, 0.6);
+  const sphere = new THREE.SphereGeometry(r, 12, 8);
+  const lmMat = new THREE.MeshBasicMaterial({ color: 0xffffff });
+  const tgMat = new THREE.MeshBasicMaterial({ color: 0xff3b30 });
+  state.lmMarkers = state.lmNames.map(() => {
+    const m = new THREE.Mesh(sphere, lmMat); markers.add(m); return m;
+  });
+  for (const [, x] of Object.entries(state.targets || {})) {
+    const m = new THREE.Mesh(new THREE.BoxGeometry(1.6 * r, 1.6 * r, 1.6 * r), tgMat);
+    m.position.set(x[0], x[1], x[2]);
+    markers.add(m);
+  }
+}
+
+function updateLandmarks(points) {
+  const rows = [];
+  state.lmNames.forEach((n, i) => {
+    state.lmMarkers[i].position.set(points[3 * i], points[3 * i + 1], points[3 * i + 2]);
+    const t = state.targets && state.targets[n];
+    if (t) {
+      const d = Math.hypot(points[3 * i] - t[0], points[3 * i + 1] - t[1], points[3 * i + 2] - t[2]);
+      rows.push(`<tr><td>${n}</td><td class="num">${d.toFixed(2)}</td></tr>`);
+    }
+  });
+  $('landmarks').tBodies[0].innerHTML = rows.join('') ||
+    '<tr><td colspan="2">no targets</td></tr>';
+}
+
+let frameQueued = false, frameResolvers = [];
+function requestFrame() {
+  if (!frameQueued) { frameQueued = true; requestAnimationFrame(draw); }
+  return new Promise((resolve) => frameResolvers.push(resolve));
+}
+
+function draw() {
+  frameQueued = false;
+  if (state.shown) {
+    if (state.pending !== null && !state.error) predict();
+    geometry.getAttribute('position').array.set(state.shown);
+    geometry.getAttribute('position').needsUpdate = true;
+    geometry.computeVertexNormals();
+    colourise();
+    if (!state.answerLandmarks) updateLandmarks(predictedLandmarks());
+  }
+  sun.position.copy(camera.position);
+  renderer.render(scene3, camera);
+  if (state.pending !== null) {
+    renderer.getContext().finish();   // the frame is drawn, not only queued
+    explorer.lastFrameMs = performance.now() - state.pending;
+    state.pending = null;
+  }
+  explorer.frames++;
+  const done = frameResolvers; frameResolvers = [];
+  done.forEach((f) => f());
+}
+
+// ---------------------------------------------------------------- sliders
+function buildSliders() {
+  const box = $('sliders');
+  box.innerHTML = '';
+  state.names.forEach((name, j) => {
+    const [lo, hi] = state.bounds[j];
+    const row = document.createElement('div');
+    row.className = 'slider';
+    row.innerHTML = `<label title="${name}">${name} (${state.units[j]})</label>` +
+      `<input type="range" min="${lo}" max="${hi}" step="0.05" value="${state.p[j]}" data-j="${j}">` +
+      `<input type="number" min="${lo}" max="${hi}" step="0.1" value="${state.p[j].toFixed(2)}" data-j="${j}">`;
+    box.appendChild(row);
+  });
+  for (const el of box.querySelectorAll('input')) el.addEventListener('input', onSlider);
+}
+
+function onSlider(ev) {
+  const j = Number(ev.target.dataset.j);
+  const v = Number(ev.target.value);
+  if (!Number.isFinite(v)) return;
+  const [lo, hi] = state.bounds[j];
+  state.p[j] = Math.min(Math.max(v, lo), hi);
+  syncSlider(j, ev.target);
+  moved(ev.timeStamp);
+}
+
+function syncSlider(j, except) {
+  for (const el of $('sliders').querySelectorAll(`input[data-j="${j}"]`)) {
+    if (el !== except) el.value = el.type === 'number' ? state.p[j].toFixed(2) : state.p[j];
+  }
+}
+
+function moved(timeStamp) {
+  state.pending = timeStamp;
+  state.error = null;
+  state.answerLandmarks = false;
+  return requestFrame();
+}
+
+function setParams(values) {   // test hook: like slider events; resolves once drawn
+  for (const [name, v] of Object.entries(values)) {
+    const j = state.names.indexOf(name);
+    if (j < 0) throw new Error(`unknown parameter ${name}`);
+    state.p[j] = Number(v);
+    syncSlider(j, null);
+  }
+  return moved(performance.now());
+}
+
+// ---------------------------------------------------------------- buttons
+function status(text, error = false) {
+  $('status').textContent = text;
+  $('status').classList.toggle('error', error);
+}
+
+async function action(label, fn) {
+  if (state.busy) return;
+  state.busy = true;
+  for (const b of document.querySelectorAll('#panel button')) b.disabled = true;
+  status(`${label}…`);
+  try {
+    await fn();
+    explorer.lastError = null;
+  } catch (e) {
+    explorer.lastError = String(e.message || e);
+    status(`${label} failed: ${explorer.lastError}`, true);
+  } finally {
+    state.busy = false;
+    for (const b of document.querySelectorAll('#panel button')) b.disabled = false;
+  }
+}
+
+function paramsObject() { return explorer.params(); }
+
+function showAnswer(r, label) {   // the answer's skin, coloured by the first-order error
+  predict();   // the first-order skin at these parameters
+  const first = state.shown;
+  const x = Float32Array.from(r.vertices.flat());
+  state.shown = x;
+  state.error = new Float32Array(state.nV);
+  for (let i = 0; i < state.nV; i++) {
+    state.error[i] = Math.hypot(x[3 * i] - first[3 * i], x[3 * i + 1] - first[3 * i + 1],
+                                x[3 * i + 2] - first[3 * i + 2]);
+  }
+  state.answerLandmarks = true;
+  updateLandmarks(state.lmNames.flatMap((n) => r.landmarks[n]));
+  status(`${label}: ${r.newton_iterations} iterations, ${r.seconds.toFixed(2)} s; ` +
+         `first-order error max ${r.first_order_error_max_mm.toFixed(3)} mm`);
+  return requestFrame();
+}
+
+async function reload(p, message) {   // after p0 moved: new scene data, sliders at p
+  await loadScene();
+  if (p) {
+    state.names.forEach((n, j) => { if (n in p) state.p[j] = p[n]; syncSlider(j, null); });
+    predict();
+  }
+  await requestFrame();
+  status(message);
+}
+
+async function plan() {
+  const bar = $('progress');
+  bar.hidden = false; bar.value = 0;
+  let polling = true;
+  const poll = (async () => {
+    while (polling) {
+      try {
+        const pr = await api('/api/progress');
+        const h = pr.history;
+        if (h.length) {
+          const d0 = h[0].mean_distance_mm, d = h[h.length - 1].mean_distance_mm;
+          bar.value = d0 > 0 ? Math.min(1, (d0 - d) / d0) : 1;
+          status(`planning: iteration ${h[h.length - 1].iteration}, mean distance ` +
+                 `${d.toFixed(2)} mm (from ${d0.toFixed(2)})`);
+        }
+      } catch (e) { /* the plan's own request reports failures */ }
+      await new Promise((r) => setTimeout(r, 300));
+    }
+  })();
+  try {
+    const r = await api('/api/plan', { targets: state.targets, occlusion: $('occlusion').value });
+    bar.value = 1;
+    await reload(Object.fromEntries(r.param_names.map((n, i) => [n, r.params_optimal[i]])),
+      `plan: ${r.gn_iterations} Gauss-Newton iterations, mean distance ` +
+      `${r.mean_distance_before_mm.toFixed(2)} -> ${r.mean_distance_after_mm.toFixed(2)} mm ` +
+      `in ${r.seconds.toFixed(1)} s (${r.stop_reason})`);
+  } finally {
+    polling = false;
+    await poll;
+    bar.hidden = true;
+  }
+}
+
+function download(name, data) {
+  const a = document.createElement('a');
+  a.href = URL.createObjectURL(new Blob([JSON.stringify(data, null, 2)], { type: 'application/json' }));
+  a.download = name;
+  a.click();
+  URL.revokeObjectURL(a.href);
+}
+
+function wire() {
+  $('front').onclick = () => look(new THREE.Vector3(0, 1, 0));
+  $('profile').onclick = () => look(new THREE.Vector3(-1, 0, 0));
+  $('colour').onchange = () => requestFrame();
+  $('solve').onclick = () => action('Solve', async () =>
+    showAnswer(await api('/api/solve', { p: paramsObject() }), 'true equilibrium'));
+  $('corrected').onclick = () => action('Corrected', async () =>
+    showAnswer(await api('/api/corrected', { p: paramsObject() }), 'corrected prediction'));
+  $('relinearise').onclick = () => action('Re-linearise', async () => {
+    const r = await api('/api/relinearise', { p: paramsObject() });
+    await reload(null, `re-linearised here in ${r.seconds.toFixed(2)} s`);
+  });
+  $('plan').onclick = () => action('Plan', plan);
+  $('match').onclick = () => action('Match', async () => {
+    const r = await api('/api/match', { p: paramsObject() });
+    await reload(r.p, `match: true face within ${r.distance_max_mm.toFixed(3)} mm (mean ` +
+      `${r.distance_mean_mm.toFixed(3)}) of the predicted one, ${r.gn_iterations} ` +
+      `iterations, ${r.seconds.toFixed(1)} s`);
+  });
+  $('export').onclick = () => action('Export', async () => {
+    const r = await api('/api/export', { p: paramsObject() });
+    const lm = predictedLandmarks();
+    r.landmarks_predicted = Object.fromEntries(state.lmNames.map((n, i) =>
+      [n, Array.from(lm.slice(3 * i, 3 * i + 3))]));
+    download('orthodiff-plan.json', r);
+    status('exported orthodiff-plan.json (parameters, 4x4 transforms per segment, occlusion)');
+  });
+}
+
+async function start() {
+  wire();
+  resize();
+  try {
+    await loadScene();
+    await requestFrame();
+    status('ready: move a slider (first-order prediction x0 + S dp)');
+    explorer.ready = true;
+  } catch (e) {
+    explorer.lastError = String(e.message || e);
+    status(`cannot load the scene: ${explorer.lastError}`, true);
+  }
+}
+
+start();
