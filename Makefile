@@ -9,7 +9,7 @@ DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py pyth
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: demo test install bench lint clean
+.PHONY: demo explore test install bench lint clean
 
 WEB := scripts/web
 
@@ -42,6 +42,11 @@ $(WEB)/node_modules/.installed: $(WEB)/package.json $(WEB)/package-lock.json .de
 
 demo: install
 	$(PY) scripts/demo.py
+
+# The browser explorer on the demo's plan (planned first if out/demo has none).
+explore: install
+	@test -f out/demo/report.json || $(PY) scripts/demo.py
+	$(PY) scripts/explore_web.py --plan-report out/demo/report.json
 
 test: install
 	$(PY) -m ruff check .

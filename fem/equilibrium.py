@@ -688,7 +688,8 @@ class Equilibrium:
         return p
 
     def solve(self, p, max_bisections: int = 6, predict: bool = True,
-              quick: bool = False, tangent: bool = False) -> SolveStats:
+              quick: bool = False, tangent: bool = False,
+              start: PETSc.Vec | None = None) -> SolveStats:
         """Equilibrium at parameters p (Np,), warm-started from the current one (at the
         current p, only when ``xtol`` is now tighter than `solved_xtol`: it refines).
         ``quick``: quasi-Newton only, from an admissible first-order prediction; where that
@@ -698,12 +699,15 @@ class Equilibrium:
         a slow quasi-Newton solve then refactorises once near convergence
         (`TANGENT_REFRESH_XTOLS`), and they reuse that factorisation.
 
-        With ``predict``, the solve starts from the first-order prediction
-        ``x(p0) + dx/dp (p - p0)`` (one solve with the kept factorisation, made first at the
-        equilibrium if there is none yet; free when the sensitivities are cached) when it
-        inverts no element; where it does (and the solve is not quick), from the state
-        `follow` reaches along the path, with K refactorised there. A quasi-Newton failure bisects
-        the step in p (continuation, up to `QN_BISECTIONS` times), then Newton takes over;
+        ``start``: a state to start from instead of a prediction (e.g. the explorer's
+        first-order state from its p0, which costs no tangent solve), where it inverts no
+        element; it is not changed. With ``predict``, the solve starts from the first-order
+        prediction ``x(p0) + dx/dp (p - p0)`` (one solve with the kept factorisation, made
+        first at the equilibrium if there is none yet; free when the sensitivities are
+        cached) when it inverts no element; where it does (and the solve is not quick),
+        from the state `follow` reaches along the path, with K refactorised there. A
+        quasi-Newton failure bisects the step in p (continuation, up to `QN_BISECTIONS`
+        times), then Newton takes over;
         ``max_bisections`` bounds all bisections. Returns `SolveStats`; raises `SolverError`
         when even continuation fails, leaving the last good equilibrium.
         """
@@ -719,7 +723,14 @@ class Equilibrium:
             self._set_state(self.u_eq)
             return self._stats
         t0 = time.perf_counter()
-        start = self.first_order(p, follow=not quick) if predict else None
+        if start is not None:   # a copy of it where it is sound
+            start = start.copy()
+            if not self._sound(start):
+                start.destroy()
+                start = None
+            self._set_state(self.u_eq)
+        if start is None:
+            start = self.first_order(p, follow=not quick) if predict else None
         if quick and start is None and predict and self._can_predict(p):
             self.set_params(self.p)   # the scene stays at its equilibrium
             self._set_state(self.u_eq)

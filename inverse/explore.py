@@ -12,6 +12,8 @@ assembly of K, no refactorisation.
 
 from __future__ import annotations
 
+from petsc4py import PETSc
+
 import logging
 
 import numpy as np
@@ -82,9 +84,7 @@ class SkinPredictor:
         iterations = check("iterations", iterations)
         substep_mm = check("substep_mm", substep_mm)
         dp = self.scene.param_vector(dp)
-        step = self._u0.duplicate()   # first-order step to p0 + dp
-        step.set(0.0)
-        step.maxpy(dp, self._dxdp)
+        step = self.step(dp)
         x = self.eq.follow(self.p0, self._u0, step, self.p0 + dp, iterations, substep_mm)
         step.destroy()
         if x is None:
@@ -94,6 +94,20 @@ class SkinPredictor:
                                                     self.lm_op.apply(x.array)))
         finally:
             x.destroy()
+
+    def step(self, dp) -> PETSc.Vec:
+        """dx/dp dp on the volume (a new PETSc vector, mm): no solve."""
+        step = self._u0.duplicate()
+        step.set(0.0)
+        step.maxpy(self.scene.param_vector(dp), self._dxdp)
+        return step
+
+    def state(self, dp) -> PETSc.Vec:
+        """The first-order displacement x(p0) + dx/dp dp on the volume (a new PETSc vector,
+        mm), e.g. a warm start for the true solve at p0 + dp: no solve."""
+        x = self.step(dp)
+        x.axpy(1.0, self._u0)
+        return x
 
     def destroy(self):
         for v in (self._u0, *self._dxdp):

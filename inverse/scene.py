@@ -103,10 +103,11 @@ class Scene:
             raise InputError(f"expected {len(self.param_names)} finite parameters, got {p}")
         return p
 
-    def solve(self, p, tangent: bool = False) -> SolveStats:
-        """Equilibrium at ``p`` (dict or (Np,)), warm-started from the current equilibrium.
-        ``tangent``: an adjoint gradient follows (see `Equilibrium.solve`)."""
-        return self.eq.solve(self.param_vector(p), tangent=tangent)
+    def solve(self, p, tangent: bool = False, start=None) -> SolveStats:
+        """Equilibrium at ``p`` (dict or (Np,)), warm-started from the current equilibrium
+        (or from the state ``start``). ``tangent``: an adjoint gradient follows (see
+        `Equilibrium.solve`)."""
+        return self.eq.solve(self.param_vector(p), tangent=tangent, start=start)
 
     def transforms(self, p=None) -> dict:
         """Rigid motion {segment: (4, 4)} of every bone segment at p (default: the current

@@ -137,11 +137,17 @@ class Session:
                 "first_order_error_max_mm": float(np.linalg.norm(skin - first, axis=1).max())}
 
     def solve(self, p) -> dict:
-        """The true equilibrium at p (Np,), warm-started from the first-order prediction:
-        skin, landmarks, iterations, seconds and the largest distance of the first-order
-        skin x0 + S dp from it (Fig. 5b). Collective."""
+        """The true equilibrium at p (Np,), warm-started from the first-order state
+        x(p0) + dx/dp (p - p0) on the kept factorisation of K(p0) (no tangent solve: from
+        wherever the last answer left the scene): skin, landmarks, iterations, seconds and
+        the largest distance of the first-order skin x0 + S dp from it (Fig. 5b).
+        Collective."""
         t = time.perf_counter()
-        stats = self.scene.solve(p)
+        start = self.pred.state(p - self.pred.p0)
+        try:
+            stats = self.scene.solve(p, start=start)
+        finally:
+            start.destroy()
         seconds = time.perf_counter() - t
         return self._answer(self._skin(), self.scene.landmarks(), p,
                             stats.newton_iterations, seconds)
@@ -179,28 +185,32 @@ class Session:
         tikhonov, ftol = check("tikhonov", tikhonov), check("ftol", ftol)
         max_iterations = check("max_iterations", max_iterations)
         t = time.perf_counter()
-        start = self.pred.p0
-        if occlusion != self.occlusion:
-            if self._make_scene is None and occlusion not in self.scenes:
-                raise InputError(f"this explorer's scene has the occlusion {self.occlusion!r} "
-                                 "only")
-            motions = self.scene.transforms()
-            if occlusion not in self.scenes:
-                self.scenes[occlusion] = self._make_scene(occlusion)
-            self.occlusion = occlusion
-            try:
-                start = self.scene.params_from_transforms(motions)
-            except InputError:
-                start = np.zeros(len(self.scene.param_names))
-            lo, hi = self.scene.treatment.bounds.T
-            start = np.clip(start, lo, hi)
-        scene = self.scene
-        obj = scene.objective(targets, tikhonov=tikhonov)
-        scene.solve(start)
-        before = scene.landmarks(list(targets))
-        result = gauss_newton(scene, obj, p0=start, ftol=ftol, max_iterations=max_iterations,
-                              callback=None if progress is None
-                              else lambda p, entry: progress(entry))
+        start, old = self.pred.p0, self.occlusion
+        try:
+            if occlusion != old:
+                if self._make_scene is None and occlusion not in self.scenes:
+                    raise InputError(f"this explorer's scene has the occlusion {old!r} only")
+                motions = self.scene.transforms(self.pred.p0)
+                if occlusion not in self.scenes:
+                    self.scenes[occlusion] = self._make_scene(occlusion)
+                self.occlusion = occlusion
+                try:
+                    start = self.scene.params_from_transforms(motions)
+                except InputError:
+                    start = np.zeros(len(self.scene.param_names))
+                lo, hi = self.scene.treatment.bounds.T
+                start = np.clip(start, lo, hi)
+            scene = self.scene
+            obj = scene.objective(targets, tikhonov=tikhonov)
+            scene.solve(start)
+            before = scene.landmarks(list(targets))
+            result = gauss_newton(scene, obj, p0=start, ftol=ftol,
+                                  max_iterations=max_iterations,
+                                  callback=None if progress is None
+                                  else lambda p, entry: progress(entry))
+        except BaseException:
+            self.occlusion = old   # the predictor's scene
+            raise
         report = plan_report(scene, result, targets, before)
         self.targets = {n: list(x) for n, x in targets.items()}
         self.relinearise(result.params)

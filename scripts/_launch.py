@@ -7,6 +7,7 @@ import contextlib
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -25,6 +26,16 @@ CHROMIUM_ARGS = ("--headless=new", "--no-sandbox", "--use-gl=swiftshader",
                  "--enable-unsafe-swiftshader", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run",
                  "--disable-dev-shm-usage")
+
+
+def mpirun(n: int) -> list:
+    """The command prefix that runs a program on n ranks ([] for one); as root, with
+    OpenMPI's --allow-run-as-root, and --oversubscribe beyond the cores."""
+    if n <= 1:
+        return []
+    exe = shutil.which("mpirun") or shutil.which("mpiexec")
+    extra = ["--allow-run-as-root", "--oversubscribe"] if os.geteuid() == 0 else []
+    return [exe, *extra, "-n", str(n)]
 
 
 @contextlib.contextmanager

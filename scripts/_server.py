@@ -175,14 +175,21 @@ class Server:
         return pickle.loads(buf)
 
     # ------------------------------------------------------------------ HTTP (rank 0)
-    def submit(self, name: str, kwargs: dict):
-        """Queue ``name`` for the main thread and wait: (status, JSON-able body)."""
+    def submit(self, name: str, arguments):
+        """Validate with ``arguments()`` (the session's local checks: its kwargs, or
+        `InputError`), queue ``name`` for the main thread and wait: (status, JSON-able
+        body). Validation runs under the computation lock, so it sees the scene the
+        computation will use (a plan may change the parameters)."""
         if not self.busy.acquire(blocking=False):
             return 503, {"error": "busy: another computation is running; try again when "
                                   "it has finished"}
         try:
             if self.stop.is_set():
                 return 503, {"error": "the explorer is stopping"}
+            try:
+                kwargs = arguments()
+            except InputError as e:
+                return 400, {"error": str(e)}
             future = concurrent.futures.Future()
             self.jobs.put((name, kwargs, future))
             kind, out = future.result()
@@ -234,44 +241,47 @@ class Server:
         def progress():
             return self.progress
 
+        async def body(request: Request, keys):
+            data = parse_body(await request.body(), self.max_body)
+            unknown = [k for k in data if k not in keys]
+            if unknown:
+                raise InputError(f"unknown key(s) {unknown}; this request takes {list(keys)}")
+            return data
+
         def with_params(name):
             async def endpoint(request: Request):
                 try:
-                    data = parse_body(await request.body(), self.max_body)
-                    _only(data, ("p",))
-                    p = session.request_params(data.get("p", {}))
+                    data = await body(request, ("p",))
                 except InputError as e:
                     return reply(400, {"error": str(e)})
-                return reply(*await run_in_threadpool(self.submit, name, {"p": p}))
+                return reply(*await run_in_threadpool(self.submit, name, lambda: {
+                    "p": session.request_params(data.get("p", {}))}))
             return endpoint
 
         for name in ("solve", "corrected", "relinearise", "match", "export"):
             app.post(f"/api/{name}")(with_params(name))
 
+        def plan_arguments(data):
+            kwargs = {"targets": session.request_targets(data.get("targets")),
+                      "occlusion": data.get("occlusion", session.occlusion)}
+            if kwargs["occlusion"] not in OCCLUSIONS:
+                raise InputError(f"'occlusion' must be one of {list(OCCLUSIONS)}, got "
+                                 f"{kwargs['occlusion']!r}")
+            for key in PLAN_KEYS[2:]:   # the plan.py options, in their fem.limits range
+                if key in data:
+                    kwargs[key] = check(key, data[key])
+            return kwargs
+
         @app.post("/api/plan")
         async def plan(request: Request):
             try:
-                data = parse_body(await request.body(), self.max_body)
-                _only(data, PLAN_KEYS)
-                kwargs = {"targets": session.request_targets(data.get("targets")),
-                          "occlusion": data.get("occlusion", session.occlusion)}
-                if kwargs["occlusion"] not in OCCLUSIONS:
-                    raise InputError(f"'occlusion' must be one of {list(OCCLUSIONS)}, got "
-                                     f"{kwargs['occlusion']!r}")
-                for key in PLAN_KEYS[2:]:   # the plan.py options, in their fem.limits range
-                    if key in data:
-                        kwargs[key] = check(key, data[key])
+                data = await body(request, PLAN_KEYS)
             except InputError as e:
                 return reply(400, {"error": str(e)})
-            return reply(*await run_in_threadpool(self.submit, "plan", kwargs))
+            return reply(*await run_in_threadpool(self.submit, "plan",
+                                                  lambda: plan_arguments(data)))
 
         return app
-
-
-def _only(data: dict, keys) -> None:
-    unknown = [k for k in data if k not in keys]
-    if unknown:
-        raise InputError(f"unknown key(s) {unknown}; this request takes {list(keys)}")
 
 
 def _dumps(body) -> str:

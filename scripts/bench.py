@@ -34,13 +34,15 @@ import json
 import os
 import platform
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from scripts._launch import mpirun  # noqa: E402
+
 BENCH_MD = ROOT / "BENCHMARKS.md"
 DOCS = ROOT / "docs"
 #: The fixed class3 treatment of the accuracy study (NAME=VALUE, mm).
@@ -69,10 +71,7 @@ def _simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
         rep = Path(d) / "r.json"
         cmd = [sys.executable, str(ROOT / "scripts" / script), *args, "--report", str(rep),
                *extra]
-        if n > 1:
-            launcher = shutil.which("mpirun") or shutil.which("mpiexec")
-            root = ["--allow-run-as-root"] if os.geteuid() == 0 else []
-            cmd = [launcher, *root, "-n", str(n), *cmd]
+        cmd = [*mpirun(n), *cmd]
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
         try:
             r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
@@ -797,6 +796,9 @@ def check_args(args) -> None:
             number("cases", mag, -MAX_MOVE_MM, MAX_MOVE_MM)
     elif args.what == "plausibility" and args.cases is not None:
         among("cases", CASES)
+    elif args.what == "explorer":
+        number("events", args.events, 1, 10000, integer=True)
+        args.events = int(args.events)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -847,13 +849,19 @@ def main():
     c = sub.add_parser("ct", help="the CT pipeline on the example CTs, to a plan")
     c.add_argument("--cts", default="headsq,cranium")
     c.add_argument("--resolutions", default="coarse,paper")
+    e = sub.add_parser("explorer", help="the browser explorer in headless Chromium")
+    e.add_argument("--resolutions", default="coarse,paper")
+    e.add_argument("--ranks", default="1,2")
+    e.add_argument("--events", default="60", help="slider events timed per row")
+    e.add_argument("--screenshot", default="docs/explorer.png",
+                   help="picture of the last row's page, relative to the project ('' none)")
     args = ap.parse_args()
     try:
         check_args(args)
     except ValueError as e:   # one line, exit 2, before any work (issue 19)
         ap.error(str(e))
     {"forward": forward, "plan": plan, "stress": stress, "accuracy": accuracy,
-     "plausibility": plausibility, "ct": ct}[args.what](args)
+     "plausibility": plausibility, "ct": ct, "explorer": explorer}[args.what](args)
 
 
 def plausibility(args) -> None:
@@ -871,6 +879,13 @@ def ct(args) -> None:
     from scripts import bench_ct
 
     bench_ct.ct(args, lambda t, a: _header(t, a), _table, _write_section)
+
+
+def explorer(args) -> None:
+    """The browser explorer's interaction figures (`scripts/bench_explorer.py`)."""
+    from scripts import bench_explorer
+
+    bench_explorer.explorer(args, lambda t, a: _header(t, a), _table, _write_section)
 
 
 if __name__ == "__main__":

@@ -165,6 +165,24 @@ def test_plan_to_simulate_py_targets_recovers_the_treatment(tmp_path):
     assert proc.returncode == 0
 
 
+def test_explores_a_plan_py_report(tmp_path):
+    """plan.py's report opens in the explorer (the README's `make explore`): its occlusion,
+    parameters, planned p as p0 and its targets, and the skin there is the planned one."""
+    rep, out = tmp_path / "plan.json", tmp_path / "plan"
+    r = _run(_python([str(ROOT / "scripts" / "plan.py"), *CASE, "--occlusion", "final",
+                      "--out", str(out), "--report", str(rep)]))
+    assert r.returncode == 0, r.stderr[-2000:]
+    plan = json.loads(rep.read_text())
+    with explorer(["--plan-report", str(rep)]) as (url, proc):
+        scene, S = _scene(url)
+    assert proc.returncode == 0
+    assert scene["occlusion"] == "final" and scene["param_names"] == plan["param_names"]
+    np.testing.assert_allclose(scene["p0"], plan["params_optimal"], atol=1e-12)
+    for name, row in plan["landmarks"].items():
+        np.testing.assert_allclose(scene["targets"][name], row["target"], atol=1e-12)
+        np.testing.assert_allclose(scene["landmarks"][name], row["after"], atol=1e-3)
+
+
 @pytest.mark.mpi
 def test_same_answers_on_1_and_2_ranks():
     """Under mpirun -n 2 rank 0 serves and every rank solves: the scene, a solve and a

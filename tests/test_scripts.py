@@ -2,7 +2,6 @@
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -26,9 +25,9 @@ def _run(cmd, **kw):
 
 
 def _mpirun(n):
-    exe = shutil.which("mpirun") or shutil.which("mpiexec")
-    extra = ["--allow-run-as-root", "--oversubscribe"] if os.geteuid() == 0 else []
-    return [exe, *extra, "-n", str(n)]
+    from scripts._launch import mpirun
+
+    return mpirun(n)
 
 
 @pytest.mark.mpi

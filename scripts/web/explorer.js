@@ -6,10 +6,11 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 const $ = (id) => document.getElementById(id);
-// Colour map stops (the legend's CSS gradient): value in [0, 1] -> RGB.
-const STOPS = [[0x30, 0x12, 0x3b], [0x46, 0x86, 0xfb], [0x1b, 0xe5, 0xb5],
-               [0xa4, 0xfc, 0x3c], [0xfb, 0x80, 0x22], [0x7a, 0x04, 0x03]].map(
-  (c) => c.map((v) => v / 255));
+// Colour map stops (the legend's CSS gradient, sRGB) as three.js's linear RGB.
+const STOPS = [0x30123b, 0x4686fb, 0x1be5b5, 0xa4fc3c, 0xfb8022, 0x7a0403].map((hex) => {
+  const c = new THREE.Color(hex);   // converted from sRGB to the working (linear) space
+  return [c.r, c.g, c.b];
+});
 
 const state = {
   names: [], units: [], bounds: [], p0: null, p: null,
@@ -182,14 +183,19 @@ function buildMarkers() {
   markers.clear();
   const r = Math.max(radius / 90, 0.6);
   const sphere = new THREE.SphereGeometry(r, 12, 8);
-  const lmMat = new THREE.MeshBasicMaterial({ color: 0xffffff });
-  const tgMat = new THREE.MeshBasicMaterial({ color: 0xff3b30 });
+  // drawn over the skin: landmarks lie on it, targets often in front of or behind it
+  const lmMat = new THREE.MeshBasicMaterial({ color: 0xffffff, depthTest: false });
+  const tgMat = new THREE.MeshBasicMaterial({ color: 0xff3b30, depthTest: false });
   state.lmMarkers = state.lmNames.map(() => {
-    const m = new THREE.Mesh(sphere, lmMat); markers.add(m); return m;
+    const m = new THREE.Mesh(sphere, lmMat);
+    m.renderOrder = 1;
+    markers.add(m);
+    return m;
   });
   for (const [, x] of Object.entries(state.targets || {})) {
     const m = new THREE.Mesh(new THREE.BoxGeometry(1.6 * r, 1.6 * r, 1.6 * r), tgMat);
     m.position.set(x[0], x[1], x[2]);
+    m.renderOrder = 1;
     markers.add(m);
   }
 }
