@@ -143,6 +143,54 @@ def test_volume_formats_read_back_in_the_scene_frame(tmp_path, suffix):
     np.testing.assert_allclose(w.origin, v.origin, atol=1e-4)
 
 
+def _write_dicom_series(v, folder: Path) -> None:
+    """``v`` as a CT DICOM series, one file per axial slice, with the tags a scanner writes
+    (position and orientation in LPS, spacing, slice thickness, int16 HU: SimpleITK's
+    DICOM series example)."""
+    import SimpleITK as sitk
+
+    from meshes.volume import F
+
+    image = sitk.GetImageFromArray(np.ascontiguousarray(v.array.transpose(2, 1, 0)
+                                                        .astype(np.int16)))
+    image.SetSpacing([float(s) for s in v.spacing])
+    image.SetOrigin([float(o) for o in F @ v.origin])
+    image.SetDirection(F.ravel().tolist())
+    D = np.array(image.GetDirection()).reshape(3, 3)
+    orientation = "\\".join(f"{c:g}" for c in (*D[:, 0], *D[:, 1]))
+    folder.mkdir()
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(image.GetDepth()):
+        sl = image[:, :, k]
+        for tag, value in {
+                "0008|0060": "CT", "0008|0016": "1.2.840.10008.5.1.4.1.1.2",
+                "0020|000d": "1.2.826.0.1.3680043.2.1125.1", "0020|000e":
+                "1.2.826.0.1.3680043.2.1125.1.1", "0020|0037": orientation,
+                "0020|0032": "\\".join(f"{c:.6f}" for c in
+                                        image.TransformIndexToPhysicalPoint((0, 0, k))),
+                "0020|0013": str(k + 1), "0018|0050": f"{v.spacing[2]:g}",
+                "0028|1053": "1", "0028|1052": "0",
+                "0008|0018": f"1.2.826.0.1.3680043.2.1125.1.1.{k + 1}"}.items():
+            sl.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / f"slice{k:04d}.dcm"))
+        writer.Execute(sl)
+
+
+def test_dicom_series_folder_reads_back_in_the_scene_frame(tmp_path):
+    """A DICOM series (a folder, as a scanner or PACS exports it) gives back the voxels,
+    spacing and origin of the volume written, in the scene's frame."""
+    from meshes.synthetic import synthetic_ct
+    from meshes.volume import read_volume
+
+    v = synthetic_ct("class1", 4.0)
+    _write_dicom_series(v, tmp_path / "series")
+    w = read_volume(tmp_path / "series")
+    assert np.array_equal(w.array, v.array)
+    np.testing.assert_allclose(w.spacing, v.spacing, atol=1e-5)
+    np.testing.assert_allclose(w.origin, v.origin, atol=1e-4)
+
+
 def test_label_map_input(tmp_path, cache):
     """A label map (1 tissue, 2 bone, as a 3D Slicer segmentation) gives the scene the CT of
     the same head gives: the same segments and landmarks."""
