@@ -28,8 +28,14 @@ def parse(ap, argv=None):
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
+    # our progress on rank 0; the libraries' INFO (FFCx's compiler lines on a fresh machine:
+    # cffi sets the root logger to INFO when it compiles) only with -v
+    verbose = getattr(args, "verbose", False)
     logging.basicConfig(level=logging.INFO if comm.rank == 0 else logging.WARNING,
                         format="%(asctime)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(lambda r: verbose or r.levelno >= logging.WARNING
+                          or r.name.split(".")[0] in OUR_LOGGERS)
     if comm.rank == 0:
         import mpi4py
         from petsc4py import PETSc
@@ -42,6 +48,8 @@ def parse(ap, argv=None):
     return args, comm
 
 
+#: Loggers that report progress on rank 0 (the rest of the root logger's output needs -v).
+OUR_LOGGERS = ("orthodiff", "fem", "inverse", "meshes")
 #: Numeric options checked by `check_options`: attribute -> `fem.limits.OPTIONS` key.
 CHECKED = {"ftol": "ftol", "max_iterations": "max_iterations", "tikhonov": "tikhonov",
            "penalty": "penalty", "substep_mm": "substep_mm", "iterations": "iterations",
@@ -83,15 +91,23 @@ def _one_line_error(message: str):
     raise SystemExit(2)
 
 
-def scene_parser(doc: str, plan: bool = False, params: str | None = None):
-    """An argument parser with the scene options (`add_scene_args`); with ``params`` (what
-    the parameters are, for the help), also ``--params FILE`` and ``--p NAME=VALUE ...``,
-    read by `load_params`."""
+def base_parser(doc: str):
+    """An argument parser with one-line errors (exit 2) and ``-v`` (the libraries' logs)."""
     import argparse
 
     ap = argparse.ArgumentParser(description=doc,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.error = _one_line_error
+    ap.add_argument("-v", "--verbose", action="store_true",
+                    help="also the libraries' logs (FFCx's JIT compiler lines, ...)")
+    return ap
+
+
+def scene_parser(doc: str, plan: bool = False, params: str | None = None):
+    """An argument parser with the scene options (`add_scene_args`); with ``params`` (what
+    the parameters are, for the help), also ``--params FILE`` and ``--p NAME=VALUE ...``,
+    read by `load_params`."""
+    ap = base_parser(doc)
     add_scene_args(ap, plan)
     if params:
         ap.add_argument("--params", help=f"JSON file {{name: value}}: {params}")

@@ -26,14 +26,10 @@ MESH_NAME = "scene.vtu"
 
 
 def parser():
-    import argparse
-
     from meshes.synthetic import RESOLUTIONS
-    from scripts._common import _one_line_error
+    from scripts._common import base_parser
 
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.error = _one_line_error
+    ap = base_parser(__doc__)
     ap.add_argument("--ct", required=True, help="CT volume (file or DICOM folder)")
     ap.add_argument("--osteotomies", required=True, help="JSON of cut planes and crop (mm)")
     ap.add_argument("--landmarks", help="JSON {name: [x, y, z]} or 3D Slicer .mrk.json")

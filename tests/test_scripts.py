@@ -18,8 +18,8 @@ REPORT_KEYS = {"case", "resolution", "n_vertices", "n_cells", "n_ranks", "param_
                "newton_iterations", "converged", "timings_s"}
 
 
-def _run(cmd, **kw):
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+def _run(cmd, env=None, **kw):
+    env = dict(env or os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     kw.setdefault("timeout", 600)
     return subprocess.run(cmd, capture_output=True, text=True, env=env, **kw)
 
@@ -442,3 +442,16 @@ def test_transforms_and_occlusion_same_on_1_and_2_ranks(tmp_path):
             np.testing.assert_allclose(x2, x1, atol=1e-6)
         np.testing.assert_allclose(b["transforms"]["mandible"], a["transforms"]["mandible"],
                                    atol=1e-6)
+
+
+def test_a_fresh_machine_sees_no_compiler_lines(tmp_path):
+    """With an empty FFCx cache (a new HOME) a script prints its progress but not the JIT's
+    compiler command lines (cffi logs them at INFO through the root logger); -v shows them."""
+    env = dict(os.environ, HOME=str(tmp_path))
+    quiet = _run(SIM + ["--p", "mandible.advance_mm=1"], env=env)
+    assert quiet.returncode == 0, quiet.stderr[-2000:]
+    out = quiet.stdout + quiet.stderr
+    assert "orthodiff:" in out and "build_ext" not in out and "gcc" not in out
+    loud = _run(SIM + ["--p", "mandible.advance_mm=1", "-v"],
+                env=dict(env, HOME=str(tmp_path / "again")))
+    assert loud.returncode == 0 and "build_ext" in loud.stdout + loud.stderr
