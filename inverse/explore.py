@@ -18,8 +18,8 @@ import logging
 
 import numpy as np
 
-from fem.equilibrium import PATH_ITERATIONS, PATH_SUBSTEP_MM
 from fem.limits import check
+from fem.policy import DEFAULT_POLICY
 from inverse.objective import Objective, point_sensitivity
 
 #: Quasi-Newton steps per substep of a corrected prediction (BENCHMARKS.md: error and time),
@@ -28,7 +28,8 @@ from inverse.objective import Objective, point_sensitivity
 #: substeps: coarse 3.18 -> 0.23 mm in 0.48 s (true equilibrium: 0.65 s), paper 3.13 ->
 #: 0.33 mm in 8.3 s (true: 23 s) (BENCHMARKS.md); 3 mm substeps on class3, coarse: 0.10 mm
 #: in 0.6 s against 0.19 mm in 0.5 s.
-CORRECTION_ITERATIONS, CORRECTION_SUBSTEP_MM = PATH_ITERATIONS, PATH_SUBSTEP_MM
+CORRECTION_ITERATIONS = DEFAULT_POLICY.path_iterations
+CORRECTION_SUBSTEP_MM = DEFAULT_POLICY.path_substep_mm
 
 log = logging.getLogger(__name__)
 

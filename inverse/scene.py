@@ -16,7 +16,8 @@ import numpy as np
 
 from fem import compat
 from fem.domain import create_domain, node_values
-from fem.equilibrium import DEFAULT_PENALTY, Equilibrium, SolveStats
+from fem.equilibrium import Equilibrium, SolveStats
+from fem.forms import DEFAULT_PENALTY
 from fem.io import write_xdmf
 from fem.material import NeoHookean
 from inverse.treatment import Treatment, rigid_treatment

@@ -47,7 +47,8 @@ def explorer(args, mpirun=(), timeout: float = 600.0):
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([*mpirun, *EXPLORE_WEB, *args, "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            encoding="utf-8", errors="replace", env=env)
     try:
         url, pid, t0 = None, proc.pid, time.monotonic()
         for line in proc.stdout:

@@ -11,6 +11,9 @@ COLOURS = {2: (0.62, 0.62, 0.62), 3: (0.93, 0.82, 0.55), 4: (0.75, 0.65, 0.9),
 SKIN_COLOUR = (0.96, 0.80, 0.69)
 #: Camera: from the patient's front right, a little above (matplotlib's elevation, azimuth).
 VIEWS = ((8, 125), (5, 180))
+#: Landmarks and targets within this distance of the mid-sagittal plane (mm) are drawn on
+#: the profile.
+PROFILE_BAND_MM = 10.0
 
 
 def _shaded(points, tris, rgb, light=(0.3, 0.8, 0.5)):
@@ -27,7 +30,8 @@ def _shaded(points, tris, rgb, light=(0.3, 0.8, 0.5)):
 def _draw(ax, points, tris, colours, view):
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    ax.add_collection3d(Poly3DCollection(points[tris], facecolors=colours, linewidths=0))
+    ax.add_collection3d(Poly3DCollection(points[tris], facecolors=colours, edgecolors=colours,
+                                         linewidths=0.3))   # no seams between faces
     lo, hi = points.min(axis=0), points.max(axis=0)
     c, r = (lo + hi) / 2, (hi - lo).max() / 2
     ax.set_xlim(c[0] - r, c[0] + r)
@@ -75,5 +79,74 @@ def render_scene(anatomy, path, title: str | None = None) -> None:
     fig.suptitle(title or f"{anatomy.name}: {anatomy.n_vertices} vertices, "
                  f"{anatomy.n_cells} tets")
     fig.subplots_adjust(0, 0, 1, 0.94, 0, 0)
+    fig.savefig(path, dpi=80, format="png")
+    plt.close(fig)
+
+
+
+def _midsagittal(rest, tris):
+    """Segments (S, 2, 2 weights...) of the skin's cut by the rest plane x = 0: for each cut
+    triangle edge pair, (vertex a, vertex b, t) so that a point is (1 - t) x_a + t x_b."""
+    x = rest[:, 0]
+    cuts = []
+    for tri in tris:
+        pts = []
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            if (x[a] < 0) != (x[b] < 0):
+                pts.append((a, b, x[a] / (x[a] - x[b])))
+        if len(pts) == 2:
+            cuts.append(pts)
+    return cuts
+
+
+def _curve(points, cuts):
+    """(S, 2, 3) segment end points on ``points`` for the cuts of `_midsagittal`."""
+    return np.array([[(1 - t) * points[a] + t * points[b] for a, b, t in c] for c in cuts])
+
+
+def render_before_after(rest, after, tris, landmarks: dict, targets: dict, path,
+                        title: str) -> None:
+    """A PNG at ``path``: the mid-sagittal skin profile before (rest, (N, 3) mm) and after a
+    plan (``after``), with the landmarks after ({name: (3,)}, black) and their targets (red);
+    and the face after the plan from the front, coloured by its displacement from rest (mm).
+    ``tris``: (T, 3) skin triangles into the points."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    fig = plt.figure(figsize=(12, 6))
+    ax = fig.add_subplot(1, 2, 1)
+    cuts = _midsagittal(rest, tris)
+    for pts, style in ((rest, dict(colors="0.55", linestyles="--", label="before")),
+                       (after, dict(colors="k", label="after"))):
+        seg = _curve(pts, cuts)[:, :, 1:]   # (y anterior, z superior)
+        ax.add_collection(LineCollection(seg, linewidths=1.6, **style))
+    near = lambda p: abs(p[0]) < PROFILE_BAND_MM   # noqa: E731  (off the profile: tragion)
+    for name, p in landmarks.items():
+        if near(p):
+            ax.plot(p[1], p[2], "ko", ms=4)
+            ax.annotate(name, (p[1], p[2]), xytext=(6, 0), textcoords="offset points",
+                        fontsize=9)
+    for name, t in targets.items():
+        if near(t):
+            ax.plot(t[1], t[2], "rx", ms=7, mew=2)
+    ax.autoscale()
+    ax.set_aspect("equal")
+    ax.set_xlabel("anterior y, mm")
+    ax.set_ylabel("superior z, mm")
+    ax.legend(loc="lower left", fontsize=9, frameon=False)
+    ax.set_title("mid-sagittal profile; x: targets", fontsize=10)
+    disp = np.linalg.norm(after - rest, axis=1)
+    cmap = plt.get_cmap("viridis")
+    colour = cmap(disp[tris].mean(axis=1) / max(disp.max(), 1e-9))[:, :3]
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    _draw(ax3, after, tris, _shaded(after, tris, colour, light=(0.2, 1.0, 0.3)), (5, 90))
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, disp.max()))
+    fig.colorbar(sm, ax=ax3, shrink=0.6, label="displacement from rest, mm")
+    ax3.set_title("after, from the front", fontsize=10)
+    fig.suptitle(title)
+    fig.subplots_adjust(0.06, 0.08, 0.98, 0.9, 0.05, 0)
     fig.savefig(path, dpi=80, format="png")
     plt.close(fig)

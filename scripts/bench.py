@@ -84,7 +84,7 @@ def _simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
 
 def _write_section(name: str, body: str) -> None:
     """Replace (or append) the section between ``<!-- name -->`` markers in BENCHMARKS.md."""
-    text = BENCH_MD.read_text() if BENCH_MD.exists() else "# Benchmarks\n"
+    text = BENCH_MD.read_text(encoding="utf-8") if BENCH_MD.exists() else "# Benchmarks\n"
     start, end = f"<!-- {name} -->", f"<!-- /{name} -->"
     block = f"{start}\n{body.rstrip()}\n{end}"
     if start in text:
@@ -93,7 +93,7 @@ def _write_section(name: str, body: str) -> None:
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     tmp = BENCH_MD.with_suffix(".md.part")
-    tmp.write_text(text)
+    tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, BENCH_MD)
 
 
@@ -306,8 +306,9 @@ def plan(args) -> None:
              "yaw -3°, maxilla 1.5 mm), then one adjoint gradient. Plain: the adjoint "
              "factorises K at the equilibrium (quasi-Newton's factorisation is K at rest); "
              "tangent-ready (`solve(tangent=True)`): the forward solve refactorises once "
-             "near convergence (`TANGENT_REFRESH_XTOLS`) and the adjoint's CG reuses that "
-             "factorisation. The columns after it are from the tangent-ready solve.", "",
+             "near convergence (`SolverPolicy.tangent_refresh_xtols`) and the adjoint's CG "
+             "reuses that factorisation. The columns after it are from the tangent-ready "
+             "solve.", "",
              "| resolution | forward plain | adjoint (factorises) | forward tangent-ready | "
              "adjoint gradient (CG its) | adjoint / forward | forward, warm | "
              "S_T (mode) | FD gradient (Np solves) | FD/adjoint time | FD vs adjoint |",
@@ -743,7 +744,7 @@ def check_args(args) -> None:
     import math
 
     sys.path.insert(0, str(ROOT))
-    from fem.equilibrium import METHODS, PRESETS
+    from fem.policy import METHODS, PRESETS
     from meshes.synthetic import CASES, RESOLUTIONS
     from scripts.bench_ct import CTS
 

@@ -7,8 +7,8 @@ vertical line through Sn, the chin and lips on the mid-sagittal plane, Sn and tr
 surgeon plans: the mandible held to the maxilla in the final occlusion and both moved as
 one unit (``--occlusion final``, the six ``jaws.*`` motions); the landmark table before and
 after, the parameters found and the timings. Writes ``out/demo/deformed.xdmf`` (open in
-ParaView), ``out/demo/displacement.xdmf``, ``out/demo/report.json`` and one
-``out/demo/<segment>.tfm`` per segment (3D Slicer).
+ParaView), ``out/demo/displacement.xdmf``, ``out/demo/report.json``,
+``out/demo/before_after.png`` and one ``out/demo/<segment>.tfm`` per segment (3D Slicer).
 Extra arguments go to scripts/plan.py (e.g. ``--resolution paper``).
 """
 
@@ -21,6 +21,6 @@ from scripts._common import run_main  # noqa: E402
 
 if __name__ == "__main__":
     args = ["--case", "class3-asym", "--resolution", "coarse", "--occlusion", "final",
-            "--out", "out/demo",
+            "--out", "out/demo", "--picture", "out/demo/before_after.png",
             "--report", "out/demo/report.json", *sys.argv[1:]]
     sys.exit(run_main(lambda: plan.main(args)))

@@ -76,6 +76,8 @@ def main(argv=None):
     ap.add_argument("--resume", action="store_true",
                     help="continue the plan saved in --checkpoint (same case and goal)")
     ap.add_argument("--out", help="output folder for XDMF of the planned result")
+    ap.add_argument("--picture", help="PNG of the face before and after the plan, with the "
+                    "landmarks and their targets")
     ap.add_argument("--report", help="JSON report path")
     args, comm = parse(ap, argv)
     import time
@@ -130,12 +132,33 @@ def main(argv=None):
     if args.out:
         scene.write(args.out)
         write_transforms(scene, args.out, comm)
+    if args.picture:
+        _picture(scene, targets, args.picture, comm)
     report["timings_s"]["total"] = time.perf_counter() - t0
     if args.report:
         write_json(args.report, report, comm)
     if comm.rank == 0:
         print_plan(report)
     return 0
+
+
+def _picture(scene, targets: dict, path, comm) -> None:
+    """The skin at rest and at the planned equilibrium (`scripts._render`), written
+    atomically by rank 0. Collective."""
+    import numpy as np
+
+    from fem.io import write_on_root
+    from scripts._render import render_before_after
+
+    dom = scene.domain
+    verts = dom.skin_vertices()
+    op = dom.vertex_operator(verts)
+    rest, after = op.apply(np.zeros_like(scene.eq.u_eq.array)), op.apply(scene.eq.u_eq.array)
+    tris = dom.skin_triangles(verts)
+    landmarks = scene.landmarks(list(targets))
+    title = f"{scene.case or dom.name}: the face before and after the plan"
+    write_on_root(path, lambda p: render_before_after(rest, after, tris, landmarks, targets,
+                                                      p, title), comm)
 
 
 def print_plan(report) -> None:

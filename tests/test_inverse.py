@@ -56,7 +56,9 @@ def test_tangent_ready_solve_serves_the_adjoint_without_a_factorisation(mandible
     refactorises once near convergence; the adjoint gradient then reuses that factorisation
     (CG, no new one) and equals the gradient with a factorisation at the equilibrium
     itself."""
-    from fem.equilibrium import TANGENT_LAG_ITS
+    from fem.policy import DEFAULT_POLICY
+
+    TANGENT_LAG_ITS = DEFAULT_POLICY.tangent_lag_its
 
     points, stats = {}, {}
     for tangent in (False, True):   # fresh scenes: both start from a factorisation at rest
@@ -270,7 +272,8 @@ def test_corrected_prediction_follows_the_path_where_first_order_inverts(mandibl
     factorisation of K at rest) comes within 0.5 mm of the true equilibrium, with no
     factorisation and the scene left at rest. In one step that may not be halved its start
     inverts an element: the plain prediction is returned."""
-    import fem.equilibrium
+    import dataclasses
+
     from inverse.explore import SkinPredictor
 
     eq = mandible_scene.eq
@@ -278,7 +281,7 @@ def test_corrected_prediction_follows_the_path_where_first_order_inverts(mandibl
     pred = SkinPredictor(mandible_scene)
     dp = np.array([20.0, 0, 0, 0, 0, 0])
     with monkeypatch.context() as m:
-        m.setattr(fem.equilibrium, "MIN_SUBSTEP", 2.0)
+        m.setattr(eq, "policy", dataclasses.replace(eq.policy, min_substep=2.0))
         np.testing.assert_array_equal(pred.corrected(dp, substep_mm=np.inf)[0],
                                       pred.predict(dp))
     for bad in (dict(dp=dp[:3]), dict(dp=dp * np.nan), dict(dp=dp, substep_mm=0.0),

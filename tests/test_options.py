@@ -59,12 +59,12 @@ def test_bench_options_are_checked_before_any_work(args, match):
     """bench.py: one `error:` line, exit 2, before any benchmark runs (none writes
     BENCHMARKS.md: the file is unchanged)."""
     bench = ROOT / "BENCHMARKS.md"
-    before = bench.read_text()
+    before = bench.read_text(encoding="utf-8")
     r = _run([sys.executable, str(ROOT / "scripts" / "bench.py"), *args], timeout=60)
     assert r.returncode == 2 and r.stderr.strip().splitlines() == \
         [ln for ln in r.stderr.strip().splitlines() if ln.startswith("error:")][:1], r.stderr
     assert match in r.stderr, r.stderr
-    assert bench.read_text() == before
+    assert bench.read_text(encoding="utf-8") == before
 
 
 def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path):

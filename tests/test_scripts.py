@@ -21,7 +21,8 @@ REPORT_KEYS = {"case", "resolution", "n_vertices", "n_cells", "n_ranks", "param_
 def _run(cmd, env=None, **kw):
     env = dict(env or os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     kw.setdefault("timeout", 600)
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, **kw)
+    return subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8",
+                          errors="replace", env=env, **kw)
 
 
 def _mpirun(n):
@@ -108,7 +109,7 @@ def test_list_params():
 
 def test_readme_example_runs(tmp_path):
     """The README's Python example, run as written (so it never goes stale)."""
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
     code = text.split("```python\n", 1)[1].split("```", 1)[0]
     code = code.replace('"coarse"', '"tiny"')   # the same example on the test mesh
     r = _run([sys.executable, "-c", code], cwd=tmp_path)
@@ -125,13 +126,15 @@ PLAN_KEYS = {"case", "resolution", "n_vertices", "n_ranks", "param_names", "para
 
 
 def test_plan_default_goal_report(tmp_path):
-    """The default clinical goal of class3-asym (7 landmarks): report keys, progress."""
+    """The default clinical goal of class3-asym (7 landmarks): report keys, progress, and
+    the before/after picture (a PNG)."""
     out = tmp_path / "out"
     r = _run(PLAN + ["--max-iterations", "3", "--out", str(out), "--report",
-                     str(out / "r.json")])
+                     str(out / "r.json"), "--picture", str(out / "face.png")])
     assert r.returncode == 0, r.stderr[-2000:]
     rep = json.loads((out / "r.json").read_text())
-    assert "deformed.xdmf" in {p.name for p in out.iterdir()}
+    assert {"deformed.xdmf", "face.png"} <= {p.name for p in out.iterdir()}
+    assert (out / "face.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert PLAN_KEYS <= set(rep)
     assert set(rep["timings_s"]) >= {"forward", "adjoint", "sensitivity", "line_search",
                                      "total"}
@@ -253,7 +256,7 @@ def test_explore_corrected_prediction_same_on_1_and_2_ranks(tmp_path):
     runs spread by 2.4e-5 mm, while 1-rank runs repeat bit for bit; 1 against 2 ranks
     differed by 1.6e-5 and 3.6e-5 mm, 1/4000 of the correction's own error (0.068 mm)
     (AMD EPYC, Debian 12's MUMPS). Bound: 2e-3 of that error."""
-    from fem.equilibrium import METHOD_DEFAULTS
+    from fem.policy import METHOD_DEFAULTS
 
     reports = {}
     for n in (1, 2):
@@ -289,7 +292,7 @@ def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     proc = subprocess.Popen(PLAN + ["--out", str(out), "--report", str(out / "r.json")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=env)
+                            encoding="utf-8", errors="replace", env=env)
     seen = []
     deadline = time.time() + 60
     while time.time() < deadline and "GN  1" not in "".join(seen):

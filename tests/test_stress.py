@@ -6,10 +6,14 @@ import warnings
 import numpy as np
 import pytest
 
-from fem.equilibrium import DEFAULT_PENALTY, GOAL_FAILURE_MM, GOAL_TOLERANCE_MM
+from fem.forms import DEFAULT_PENALTY
 from fem.material import NeoHookean
+from fem.policy import DEFAULT_POLICY
 from meshes.anatomy import SLIVER_QUALITY, signed_volumes, tet_quality
 from meshes.errors import SolverError
+
+GOAL_FAILURE_MM = DEFAULT_POLICY.goal_failure_mm
+GOAL_TOLERANCE_MM = DEFAULT_POLICY.goal_tolerance_mm
 
 pytestmark = pytest.mark.stress
 
@@ -130,10 +134,11 @@ def test_crushing_rotation_is_not_an_equilibrium(mandible_scene, monkeypatch):
     yaw reached, and the scene is sound there. The threshold is lowered to 4 µm so that a
     30° yaw (bone 6 µm from its goal on this mesh; 20°: 2 µm) counts as crushed: on the
     anatomy with a free sagittal split, no fast move on the tiny mesh crushes 1 mm."""
-    import fem.equilibrium
+    import dataclasses
 
     mandible_scene.solve(np.zeros(6))
-    monkeypatch.setattr(fem.equilibrium, "GOAL_FAILURE_MM", 0.004)
+    eq = mandible_scene.eq
+    monkeypatch.setattr(eq, "policy", dataclasses.replace(eq.policy, goal_failure_mm=0.004))
     with pytest.raises(SolverError, match="largest step reached is p"):
         mandible_scene.solve({"mandible.yaw_deg": 30.0})
     assert 5.0 < mandible_scene.params[5] < 30.0
@@ -251,9 +256,9 @@ def test_failed_mumps_factorisation_is_redone(mandible_only, tiny_anatomy, mandi
     with ICNTL(14) doubled; the solve ends where an untroubled one does. Forced here with a
     1 MB memory cap (ICNTL(23), INFOG(1) = -19) on the first factor only, counted as a
     workspace error. (The reference solve starts from another state: within 1e-3 mm.)"""
-    import fem.equilibrium
+    import fem.factorisation
 
-    monkeypatch.setattr(fem.equilibrium, "MUMPS_WORKSPACE_ERRORS", {-19})
+    monkeypatch.setattr(fem.factorisation, "MUMPS_WORKSPACE_ERRORS", {-19})
     scene = mandible_only(tiny_anatomy)
     pc = scene.eq.ksp.getPC()
     pc.getFactorMatrix().setMumpsIcntl(23, 1)
@@ -276,10 +281,12 @@ def test_newton_takes_over_from_a_sound_quasi_newton_iterate(mandible_only, tiny
     iterate (sound: finite, nothing inverted, bone at its goal) instead of from the start:
     9 factorisations, and a sound equilibrium. (On the anatomy whose maxilla floated in a
     mandible-only scene, a 25 mm advance: 14 factorisations where restarting took 41.)"""
-    import fem.equilibrium
+    import dataclasses
 
-    monkeypatch.setattr(fem.equilibrium, "QN_BISECTIONS", 0)
-    scene = mandible_only(tiny_anatomy)
+    from fem.policy import DEFAULT_POLICY
+
+    scene = mandible_only(tiny_anatomy, newton=dict(
+        policy=dataclasses.replace(DEFAULT_POLICY, qn_bisections=0)))
     st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 20.0}), predict=False)
     assert st.continuation_steps == 0 and st.factorisations <= 20, st
     _assert_sound(scene, st)

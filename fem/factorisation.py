@@ -1,0 +1,262 @@
+"""The kept factorisation of K: the SNES objects that share one KSP, MUMPS set-up and
+workspace retries, the inertia check and its diagonal shifts, and when K is refactorised.
+"""
+
+from __future__ import annotations
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+import logging
+import time
+
+import dolfinx
+import numpy as np
+
+from fem.policy import METHOD_DEFAULTS, METHODS, PRESETS
+
+log = logging.getLogger("fem.equilibrium")
+
+
+#: MUMPS errors (INFOG(1)) of a too small workspace (ICNTL(14) is then doubled).
+MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
+
+
+class _ApplyOther:
+    """Python PC context that applies another, already built PC."""
+
+    def __init__(self, pc):
+        self.pc = pc
+
+    def apply(self, pc, x, y):
+        self.pc.apply(x, y)
+
+
+class Factorisation:
+    """The KSP and its factorisation, kept across solves (mixin of
+    `fem.equilibrium.Equilibrium`)."""
+
+    def _set_near_nullspace(self):
+        """Rigid-body modes (3 translations, 3 rotations) for GAMG."""
+        X = self.domain.X
+        n_owned = self.domain.n_owned
+        vecs = [self.b.duplicate() for _ in range(6)]
+        x = X[:n_owned]
+        fields = [np.tile(e, (n_owned, 1)) for e in np.eye(3)]
+        fields += [np.stack([-x[:, 1], x[:, 0], 0 * x[:, 0]], 1),
+                   np.stack([0 * x[:, 0], -x[:, 2], x[:, 1]], 1),
+                   np.stack([x[:, 2], 0 * x[:, 0], -x[:, 0]], 1)]
+        for vec, f in zip(vecs, fields):
+            vec.setArray(f.ravel())
+        dolfinx.la.orthonormalize(vecs)
+        ns = PETSc.NullSpace().create(vectors=vecs, comm=self.domain.comm)
+        self.A.setNearNullSpace(ns)
+
+    def _make_snes(self, prefix: str, solver: str, options: dict):
+        """Newton's SNES, which owns the KSP (factorisation) that every solve shares; preset
+        options under ``prefix`` (the command line wins)."""
+        self._prefix = prefix
+        self._search = {"snes_linesearch_type": "bt", "snes_linesearch_max_it": 40,
+                        "snes_max_linear_solve_fail": 1}
+        settings = {**METHODS["newton"], **self._search, **PRESETS[solver], **options}
+        self._newton_snes = self._build_snes(settings, METHOD_DEFAULTS["newton"]["max_it"]
+                                             if self.method != "newton" else self.max_it)
+        self._qn_snes = None
+        ksp = self._newton_snes.getKSP()
+        ksp.setOperators(self.A)
+        pc = ksp.getPC()
+        self._check_inertia = pc.getType() == "cholesky" and \
+            pc.getFactorSolverType() == "mumps"
+        if self._check_inertia:
+            opts = PETSc.Options()
+            self._icntl = {int(k.rsplit("_", 1)[1]): opts.getInt(prefix + k, int(v))
+                           for k, v in settings.items() if k.startswith("mat_mumps_icntl_")}
+            self._new_mumps_factor(pc)
+        self.solver_name = solver
+        return ksp
+
+    def _new_mumps_factor(self, pc):
+        """A new MUMPS factor in ``pc`` with our ICNTL settings (MUMPS reads them at
+        factorisation time, after the options database lost them: they are set here)."""
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        for k, v in self._icntl.items():
+            factor.setMumpsIcntl(k, v)
+
+    def _build_snes(self, settings: dict, max_it: int, ksp=None):
+        """A SNES with our callbacks and line search checks, configured from ``settings``
+        (PETSc options under the prefix; the command line wins), which are removed from the
+        global database afterwards. ``ksp``: share this KSP and its factorisation, as set
+        up (its options are not read again)."""
+        opts = PETSc.Options()
+        snes = PETSc.SNES().create(self.domain.comm)
+        snes.setOptionsPrefix(self._prefix)
+        mine = [k for k in settings if not opts.hasName(self._prefix + k)]
+        for k in mine:
+            opts[self._prefix + k] = settings[k]
+        # late-bound callbacks: a test may replace a method on the instance
+        snes.setFunction(lambda s, x, b: self._residual(s, x, b), self.b)
+        snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
+        snes.setObjective(lambda s, x: self._objective(s, x))
+        snes.setConvergenceTest(self._converged)
+        snes.setTolerances(max_it=max_it)
+        snes.setFromOptions()
+        snes.setLineSearchPreCheck(self._critical_step if snes.getType() == "qn"
+                                   else self._precheck)
+        if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
+            snes.setKSP(ksp)
+        for k in mine:
+            opts.delValue(self._prefix + k)
+        return snes
+
+    def _method_snes(self):
+        """The SNES for the next solve: Newton when asked for, or when xtol is below
+        `SolverPolicy.qn_min_xtol`. PETSc 3.18's SNESQN keeps its L-BFGS pairs from one solve to the
+        next (pairs across different goals: wrong curvature), so quasi-Newton gets a fresh
+        one on the shared KSP each time (a few ms)."""
+        if self.method == "newton" or self.xtol < self.policy.qn_min_xtol:
+            return self._newton_snes
+        return self._fresh_qn_snes(self.max_it)
+
+    def _fresh_qn_snes(self, max_it: int):
+        """A new quasi-Newton SNES on the shared KSP (the previous one destroyed)."""
+        self._drop_qn_snes()
+        self._relaxing = False   # set by relax() on its own
+        self._qn_snes = self._build_snes({**self._search, **METHODS["qn"]}, max_it, self.ksp)
+        return self._qn_snes
+
+    def _make_tangent_ksp(self, prefix: str):
+        """CG on K at the equilibrium, preconditioned by the kept factorisation (or GAMG
+        hierarchy) of the forward solves; `solve_tangent` decides when to rebuild it."""
+        ksp = PETSc.KSP().create(self.domain.comm)
+        ksp.setOptionsPrefix(prefix + "tangent_")
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        ksp.setTolerances(rtol=1e-11, atol=1e-30, max_it=200)
+        ksp.setOperators(self.K)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(_ApplyOther(self.ksp.getPC()))
+        ksp.setFromOptions()
+        return ksp
+
+    def _drop_qn_snes(self):
+        """Destroy the last quasi-Newton SNES; first hand it a KSP of its own: destroying a
+        SNES resets its KSP, which would throw away the shared factorisation."""
+        if self._qn_snes is not None:
+            self._qn_snes.setKSP(PETSc.KSP().create(self.domain.comm))
+            self._qn_snes.destroy()
+            self._qn_snes = None
+
+    def _jacobian(self, snes, x, A, P):
+        """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
+        inertia is checked right after factorisation, and the shift raised until K is PD.
+        Quasi-Newton keeps the last factorisation (nothing assembled) while it serves: it
+        was not shifted and the last solve needed at most ``lag_its`` iterations."""
+        if (snes is not None and snes.getType() == "qn" and self._pc_ready
+                and not self._refactor and self._shift == 0 and self._step_shift == 0
+                and self._last_its <= self.lag_its):
+            self._stats.lagged += 1
+            return
+        t = time.perf_counter()
+        # K at the equilibrium: assembled once, copied (MatCopy into a matrix never
+        # assembled leaves it flagged unassembled: the first one is assembled)
+        if x is self.u_eq and A.assembled:
+            self._assemble_K()
+            self.K.copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        else:
+            self._set_state(x)
+            self._assemble_jacobian(A)
+        if self._diag_scale is None:   # typical elastic diagonal, for shift sizes
+            d = A.getDiagonal()
+            med = np.median(d.array_r) if d.getLocalSize() else 0.0
+            self._diag_scale = self.domain.comm.allreduce(med, op=MPI.MAX)
+            d.destroy()
+        self._stats.assemble += time.perf_counter() - t
+        if self._shift > 0:
+            A.shift(self._shift)
+        self._step_shift = self._shift
+        pc = self.ksp.getPC()
+        reuse = (self.method == "newton" and self.lag_its > 0 and self._pc_ready
+                 and not self._refactor and self._shift == 0
+                 and self.ksp.getIterationNumber() <= self.lag_its)
+        pc.setReusePreconditioner(reuse)   # lagging: CG on the new K, the old factor as PC
+        self._pc_ready, self._refactor = True, False
+        if reuse:
+            self._stats.lagged += 1
+            return
+        self._stats.factorisations += 1
+        self._stale_pc = self._pc_at_eq = False
+        if pc.getType() != "cholesky":
+            return
+        while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
+            t = time.perf_counter()
+            self.ksp.setOperators(A)
+            try:
+                pc.setUp()
+                n_neg = self._inertia(pc, A) if self._check_inertia else 0
+            except PETSc.Error:
+                n_neg = -1
+            self._stats.factor += time.perf_counter() - t
+            if n_neg == 0:
+                break
+            if self._shift >= self.shift_max * self._diag_scale:
+                break   # give up on PD; the line search and the caller decide
+            new = max(4 * self._shift, 1e-2 * self._diag_scale)
+            A.shift(new - self._shift)
+            self._shift = new
+            self._stats.shifts.append(new)
+            log.debug("%d negative pivots: diagonal shift %.3g", n_neg, new)
+        self._step_shift = self._shift
+        # let the shift decay once a step is accepted with a PD matrix
+        self._shift = 0.0 if self._shift < 0.04 * self._diag_scale else self._shift / 4
+
+    def _inertia(self, pc, A) -> int:
+        """Negative pivots of MUMPS's LDLᵀ factor of A, or -1 when the factorisation failed.
+        PETSc 3.18 does not raise on a failed MUMPS factorisation: it leaves INFOG(1) < 0 and
+        skips every later numeric factorisation of that factor, so a failed one is replaced
+        by a new factor (a new analysis). Where the workspace was too small (delayed pivots
+        filled beyond the analysis's estimate; on 2 ranks this varies from run to run),
+        ICNTL(14) is doubled and A factorised again."""
+        for attempt in range(self.policy.mumps_workspace_retries + 1):
+            F = pc.getFactorMatrix()
+            err = F.getMumpsInfog(1)
+            if err >= 0:
+                return F.getInertia()[0]
+            workspace = err in MUMPS_WORKSPACE_ERRORS and \
+                attempt < self.policy.mumps_workspace_retries
+            if workspace:
+                self._icntl[14] = 2 * max(F.getMumpsIcntl(14), 10)
+            pc.reset()
+            self.ksp.setOperators(A)
+            self._new_mumps_factor(pc)
+            if not workspace:
+                break
+            log.info("MUMPS workspace too small (INFOG(1) = %d): factorising again with "
+                     "ICNTL(14) = %d %%", err, self._icntl[14])
+            pc.setUp()
+        log.warning("MUMPS factorisation failed (INFOG(1) = %d)", err)
+        return -1
+
+    def _invalidate(self):
+        self._K_ready = False
+        for v in self._sens or []:
+            v.destroy()
+        self._sens = None
+
+    def _assemble_K(self):
+        if self._K_ready:
+            return
+        self._set_state(self.u_eq)
+        self._assemble_jacobian(self.K)
+        self._K_ready = True
+
+    def _factorise_at_equilibrium(self):
+        """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a
+        diagonal shift only where K is not positive definite there); K is assembled once."""
+        self._refactor = True
+        self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
+        self.ksp.setOperators(self.A)
+        self.ksp.getPC().setUp()
+        self._set_state(self.u_eq)
+        self._pc_at_eq = self._step_shift == 0

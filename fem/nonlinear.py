@@ -1,0 +1,351 @@
+"""The nonlinear strategies: quasi-Newton on the kept factorisation with its critical-point
+line search and stopping test, stall refreshes, bisection of the step in p, Newton taking
+over; `SolveStats` of each solve.
+"""
+
+from __future__ import annotations
+
+from petsc4py import PETSc
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from fem import compat
+from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
+from meshes.errors import SolverError
+
+log = logging.getLogger("fem.equilibrium")
+
+
+@dataclasses.dataclass
+class SolveStats:
+    """What one equilibrium solve did. Times in seconds."""
+
+    newton_iterations: int = 0
+    shifts: list = dataclasses.field(default_factory=list)
+    continuation_steps: int = 0
+    residual_history: list = dataclasses.field(default_factory=list)
+    factorisations: int = 0
+    linear_iterations: int = 0
+    lagged: int = 0
+    assemble: float = 0.0
+    factor: float = 0.0
+    linear_solve: float = 0.0
+    total: float = 0.0
+    goal_error: float = 0.0   # max |u - B p| over active vertices, mm
+    min_det_F: float = 1.0    # smallest volume ratio J at the equilibrium
+    warnings: list = dataclasses.field(default_factory=list)   # goal error, compression
+
+
+class NonlinearSolves:
+    """One equilibrium solve and its fallbacks (mixin of
+    `fem.equilibrium.Equilibrium`)."""
+
+    def _precheck(self, x, y, *args):
+        """Remember the search direction's size (inf-norm, mm) for the convergence test."""
+        self._direction = y.norm(PETSc.NormType.INFINITY)
+        return False
+
+    def _critical_step(self, x, y, *args):
+        """Quasi-Newton's line search, run as the pre-check of SNES's "basic" one, which then
+        takes the step x - y: y is scaled to the critical point of the energy along it, by
+        one secant step on s(λ) = F(x - λy)·y between λ = 0 and a trial λ = t, the full
+        step halved until it inverts no element; the secant root is taken up to 2t, where
+        it is checked too. On an energy with L-BFGS's full step this cut paper-size
+        iterations 24 -> 16 against a backtracking search (BENCHMARKS.md). One residual
+        per iteration besides SNES's own; a step that still inverts an element fails the
+        solve (a NaN residual), which falls back as any failure does."""
+        self._precheck(x, y)
+        s0 = self.b.dot(y)   # the SNES function vector holds F(x)
+        t = 1.0
+        for _ in range(self.policy.max_halvings):
+            s1 = self._slope(x, y, t)
+            if s1 is not None:
+                break
+            t /= 2
+        lam = t
+        if s1 is not None and s0 > 0 and s0 - s1 > 0:
+            lam = min(t * s0 / (s0 - s1), 2 * t)
+            if lam > t and not self._sound(self._trial_point(x, y, lam)):
+                lam = t
+        y.scale(lam)
+        return True
+
+    def _trial_point(self, x, y, lam: float) -> PETSc.Vec:
+        """x - λy in the line search's work vector."""
+        x.copy(self._w)
+        self._w.axpy(-lam, y)
+        return self._w
+
+    def _slope(self, x, y, lam: float):
+        """F(x - λy)·y (mN·mm), or None where x - λy inverts an element (P1: the residual is
+        NaN; P2 is also checked at the vertices). Collective."""
+        self._residual(None, self._trial_point(x, y, lam), self._r)
+        val = self._r.dot(y)   # the same on every rank (a global dot)
+        ok = np.isfinite(val) and (self.domain.degree == 1 or self.min_det_F() > 0)
+        return val if ok else None
+
+    def _converged(self, snes, it, norms):
+        xnorm, ynorm, fnorm = norms
+        self._stats.residual_history.append(fnorm)
+        if it == 0:
+            self._fnorms = []
+        self._fnorms.append(fnorm)
+        if not np.isfinite(fnorm):
+            return PETSc.SNES.ConvergedReason.DIVERGED_FNORM_NAN
+        if fnorm <= self.atol:
+            return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
+        if it == 0:
+            self._f0 = fnorm if self._f_ref is None else self._f_ref
+            self._x_prev = snes.getSolution().copy()
+            return 0
+        x = snes.getSolution()
+        self._x_prev.axpy(-1.0, x)
+        step = self._x_prev.norm(PETSc.NormType.INFINITY)
+        x.copy(self._x_prev)
+        if snes.getType() == "qn":   # a short step AND a short search direction, both
+            # scaled to the error they leave at quasi-Newton's observed linear rate
+            step, full = max(step, self._direction) * self._error_per_step(it), True
+        else:   # a small step proves convergence only if it was a full Newton step (no shift)
+            full = self._step_shift == 0
+        if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
+            return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
+        if snes.getType() == "qn" and self._tangent_refresh and \
+                it > self.policy.tangent_lag_its and \
+                step <= self.policy.tangent_refresh_xtols * self.xtol:
+            self._tangent_refresh, self._refresh = False, "tangent"
+            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
+        if snes.getType() == "qn" and it >= self.policy.stall_its and \
+                fnorm > self.policy.stall_ratio * self._fnorms[it - self.policy.stall_its]:
+            self._refresh = "stalled"
+            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
+        if it >= snes.getTolerances()[3]:
+            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
+        return 0
+
+    def _error_per_step(self, it: int) -> float:
+        """max(1, ρ/(1-ρ)): at a linear rate ρ (the residual's over the last two iterations,
+        the first, load-solving one left out, capped at `SolverPolicy.rate_max`) the error
+        left after a
+        step of length s is about s ρ/(1-ρ). Slow rates (a factorisation far from here)
+        thus stop later; healthy ones (ρ ≤ 1/2) as the step alone says."""
+        if it < 3:
+            return 1.0
+        rate = min(np.sqrt(self._fnorms[it] / self._fnorms[it - 2]), self.policy.rate_max)
+        return max(1.0, rate / (1.0 - rate))
+
+    def solve(self, p, max_bisections: int = 6, predict: bool = True,
+              quick: bool = False, tangent: bool = False,
+              start: PETSc.Vec | None = None) -> SolveStats:
+        """Equilibrium at parameters p (Np,), warm-started from the current one (at the
+        current p, only when ``xtol`` is now tighter than `solved_xtol`: it refines).
+        ``quick``: quasi-Newton only, from an admissible first-order prediction; where that
+        prediction inverts an element or quasi-Newton fails, raise `SolverError` at once (no
+        Newton, no continuation), e.g. for a line-search trial that may be shortened.
+        ``tangent``: a few tangent solves (an adjoint gradient) follow at this equilibrium;
+        a slow quasi-Newton solve then refactorises once near convergence
+        (`SolverPolicy.tangent_refresh_xtols`), and they reuse that factorisation.
+
+        ``start``: a state to start from instead of a prediction (e.g. the explorer's
+        first-order state from its p0, which costs no tangent solve), where it inverts no
+        element; it is not changed. With ``predict``, the solve starts from the first-order
+        prediction ``x(p0) + dx/dp (p - p0)`` (one solve with the kept factorisation, made
+        first at the equilibrium if there is none yet; free when the sensitivities are
+        cached) when it inverts no element; where it does (and the solve is not quick),
+        from the state `follow` reaches along the path, with K refactorised there. A
+        quasi-Newton failure bisects the step in p (continuation, up to `SolverPolicy.qn_bisections`
+        times), then Newton takes over;
+        ``max_bisections`` bounds all bisections. Returns `SolveStats`; raises `SolverError`
+        when even continuation fails, leaving the last good equilibrium.
+        """
+        p = np.asarray(p, dtype=float).reshape(-1)
+        self.set_params(p)  # validates
+        max_bisections = check("max_bisections", max_bisections)
+        self._stats = SolveStats()
+        self._relaxing = False   # relax() pairs do not outlive a solve
+        quick = quick and self.method != "newton"
+        if quick:
+            max_bisections = 0
+        if np.array_equal(p, self.p) and self.xtol >= self.solved_xtol:   # already there
+            self._set_state(self.u_eq)
+            return self._stats
+        t0 = time.perf_counter()
+        if start is not None:   # a copy of it where it is sound
+            start = start.copy()
+            if not self._sound(start):
+                start.destroy()
+                start = None
+            self._set_state(self.u_eq)
+        if start is None:
+            start = self.first_order(p, follow=not quick) if predict else None
+        if quick and start is None and predict and self._can_predict(p):
+            self.set_params(self.p)   # the scene stays at its equilibrium
+            self._set_state(self.u_eq)
+            raise SolverError(f"the first-order prediction at p = {np.round(p, 4).tolist()} "
+                              "inverts an element: no quick solve is tried")
+        p_done, p_start = self.p.copy(), self.p.copy()
+        u_good = self.u_eq.copy()   # self.u may have been changed by the caller
+        self._set_state(start or u_good)
+        if start is not None:
+            start.destroy()
+        todo = [p]
+        depth = 0
+        while todo:
+            p_next = todo[-1]
+            self._tangent_refresh = tangent and len(todo) == 1   # at p itself only
+            try:
+                self._newton(p_next, p_done, quick,
+                             qn_only=quick or depth < self.policy.qn_bisections)
+            except SolverError:
+                self._set_state(u_good)
+                depth += 1
+                if depth > max_bisections:   # keep the largest step reached
+                    self._commit(p_done, t0, moved=not np.array_equal(p_done, p_start))
+                    u_good.destroy()
+                    raise SolverError(
+                        f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
+                        f"{max_bisections} bisections; the largest step reached is p = "
+                        f"{np.round(p_done, 4).tolist()}, where the scene is left") from None
+                todo.append(0.5 * (p_done + p_next))
+                self._stats.continuation_steps += 1
+                log.info("continuation: bisecting to p = %s", todo[-1])
+                continue
+            todo.pop()
+            p_done = p_next
+            self._uvec.copy(u_good)
+        u_good.destroy()
+        return self._commit(p_done, t0)
+
+    def _commit(self, p, t0, moved: bool = True) -> SolveStats:
+        """Make the current state u the equilibrium at p; finish the stats; report a goal
+        the tissue did not let the bone reach. ``moved=False`` (a failed solve that made no
+        step): the equilibrium, its accuracy, K and dx/dp there are kept."""
+        self.set_params(p)
+        self.p = p.copy()
+        self._uvec.copy(self.u_eq)
+        if moved:
+            self.solved_xtol = self.xtol
+            self._invalidate()
+            self._pc_at_eq = False
+        st = self._stats
+        st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
+        if st.goal_error > self.policy.goal_tolerance_mm:
+            st.warnings.append(
+                f"active vertices end {st.goal_error:.3f} mm from their goals (> "
+                f"{self.policy.goal_tolerance_mm:g} mm) at p = {np.round(p, 3).tolist()}: the "
+                "tissue resists "
+                f"(min det F = {st.min_det_F:.2g}) or the penalty k is too soft")
+        if st.min_det_F < COMPRESSION_WARN:
+            st.warnings.append(
+                f"tissue compressed to {100 * st.min_det_F:.0f} % of its volume (min det F "
+                f"{st.min_det_F:.2f} < {COMPRESSION_WARN:g}): the treatment is beyond what the "
+                "soft tissue plausibly follows")
+        if self.domain.comm.rank == 0:
+            for w in st.warnings:
+                log.warning(w)
+        st.total = time.perf_counter() - t0
+        st.linear_solve = max(st.total - st.assemble, 0.0)
+        self._stats = SolveStats()   # later tangent work must not change what was returned
+        return st
+
+    def _newton(self, p, p_from, quick: bool = False, qn_only: bool = False):
+        """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
+        quasi-Newton fails and ``qn_only``, `SolverError` (the caller bisects the step);
+        else Newton goes on from its iterate where that is sound (finite, nothing inverted,
+        bone not held back), else from the same start; when Newton fails, the diagonal
+        shift is raised and it resumes. The residual tolerance is relative to the
+        load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start, and at
+        least `fem.limits.FRTOL_FLOOR` of the goals' whole load |df/dg g(p)| (a tiny step
+        cannot ask for a residual below roundoff); with no load (a refinement) only the step
+        counts."""
+        self.set_params(p)
+        self._shift = 0.0
+        load = self._load(p - p_from)
+        total = load.duplicate()
+        self.dfdg.mult(compat.petsc_vec(self.goal), total)
+        # no load: refining the current equilibrium to a tighter xtol, where only steps count
+        self._f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
+        load.destroy()
+        total.destroy()
+        self._uvec.copy(self._x)
+        start = self._x.copy()
+        try:
+            self._iterate(p, start, quick, qn_only)
+        finally:
+            start.destroy()
+            self._shift, self._tangent_refresh = 0.0, False
+
+    def _iterate(self, p, start, quick: bool, qn_only: bool):
+        """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
+        `SolverError` when Newton fails even with the largest retry shift, or when
+        quasi-Newton fails and ``qn_only``. ``quick``: one stall refresh only."""
+        snes = self._method_snes()
+        shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
+        refreshes = 0
+        while True:
+            self._refresh = None
+            snes.solve(None, self._x)
+            reason = snes.getConvergedReason()
+            self._last_its = snes.getIterationNumber()
+            self._stats.newton_iterations += self._last_its
+            self._stats.linear_iterations += snes.getLinearSolveIterations()
+            self._set_state(self._x)
+            crushed = False
+            if reason > 0 and self._finite(self._x):
+                gap = self.active_goal_error()
+                if gap <= self.policy.goal_failure_mm:
+                    return
+                crushed = True
+                if snes is self._newton_snes:
+                    raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
+                                      f"{gap:.1f} mm from its goal (tissue crushed, min det F "
+                                      f"= {self.min_det_F():.1e})")
+            self._refactor = True
+            why = self._refresh
+            if snes is not self._newton_snes and (why == "tangent" or why == "stalled" and
+                                                  refreshes < (self.policy.quick_refreshes if quick
+                                                               else self.policy.qn_refreshes)):
+                refreshes += why == "stalled"   # K at the current iterate, fresh pairs, go on
+                log.info("qn %s after %d iterations: refactorising there", why, self._last_its)
+                snes = self._method_snes()
+                continue
+            if snes is not self._newton_snes and qn_only:
+                raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
+            if snes is not self._newton_snes:   # Newton from quasi-Newton's iterate if sound
+                sound = not crushed and self._sound(self._x)
+                log.info("%s: SNES reason %d after %d iterations%s: Newton takes over from %s",
+                         snes.getType(), reason, self._last_its,
+                         " (tissue crushed)" if crushed else "",
+                         "there" if sound else "the start")
+                snes = self._newton_snes
+                if not sound:
+                    start.copy(self._x)
+                continue
+            if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
+                raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
+            shift = self._shift = max(100 * shift, 1e-2 * self._diag_scale)
+            self._stats.shifts.append(shift)
+            log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
+                     self._last_its, shift)
+
+    @property
+    def stats(self) -> SolveStats:
+        """What the last solve did, with the relax iterations of corrections since."""
+        return self._stats
+
+    def snapshot(self):
+        """(p, u, solved_xtol) of the current equilibrium, for `restore`."""
+        return self.p.copy(), self.u_eq.copy(), self.solved_xtol
+
+    def restore(self, snap):
+        """Return to an equilibrium saved by `snapshot` (no solve)."""
+        p, u, self.solved_xtol = snap
+        self.set_params(p)
+        self.p = p.copy()
+        u.copy(self.u_eq)
+        self._set_state(self.u_eq)
+        self._invalidate()
+        self._pc_at_eq = False

@@ -1,0 +1,193 @@
+"""Path following and predictions: first-order states x(p0) + dx/dp dp, their admissibility
+(no inverted element), secant continuation along a path and quasi-Newton relaxation on the
+kept factorisation (no assembly of K).
+"""
+
+from __future__ import annotations
+
+from petsc4py import PETSc
+
+import logging
+import time
+
+import numpy as np
+
+from fem.nonlinear import SolveStats
+from meshes.errors import SolverError
+
+log = logging.getLogger("fem.equilibrium")
+
+
+class PathFollowing:
+    """Predictions and continuation (mixin of `fem.equilibrium.Equilibrium`)."""
+
+    def tangent_step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
+        """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
+        tangent solve; with no factorisation yet, one is made at the equilibrium, and a
+        Cholesky factor of K there is applied once (no K assembled, no CG). ``rhs``: the
+        load to respond to instead of -df/dp dp (e.g. `_goal_load`; consumed)."""
+        dp = np.asarray(dp, dtype=float)
+        out = self.u_eq.duplicate()
+        out.set(0.0)
+        if self.has_sensitivity and rhs is None:
+            out.maxpy(dp, self._sens)
+            return out
+        rhs = self._load(-dp) if rhs is None else rhs
+        if not self._pc_ready:
+            self._factorise_at_equilibrium()
+        pc = self.ksp.getPC()
+        if self._pc_at_eq and pc.getType() == "cholesky":
+            pc.apply(rhs, out)
+        else:
+            self.solve_tangent(rhs, out)
+        rhs.destroy()
+        return out
+
+    def _can_predict(self, p) -> bool:
+        """p differs from the equilibrium's (a solved one: not a rest state whose goals are
+        not the rest) and a factorisation (or dx/dp) is at hand, or
+        quasi-Newton would make one at the equilibrium first anyway (then it is made for the
+        prediction and serves both)."""
+        quasi_newton = self.method == "qn" and self.xtol >= self.policy.qn_min_xtol
+        return bool(np.any(p != self.p) and np.isfinite(self.solved_xtol)
+                    and (self._pc_ready or self.has_sensitivity or quasi_newton))
+
+    def first_order(self, p, follow: bool = False):
+        """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None
+        when it inverts an element, there is no factorisation yet, or p is p0. ``follow``:
+        where it inverts an element, the state `follow` reaches instead; the kept
+        factorisation, of K at p0, is then refactorised at the next solve's start.
+        Collective."""
+        if not self._can_predict(p):
+            return None
+        try:
+            # nonlinear goals: the tissue's response to the exact goals at p (one solve
+            # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
+            # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
+            step = self.tangent_step(p - self.p, None if self.goals.linear
+                                     else self._goal_load(p))
+        except SolverError:
+            return None
+        try:
+            x = self.admissible(self.u_eq, step)
+            if x is None and follow:
+                x = self.follow(self.p, self.u_eq, step, p)
+                self._refactor = x is not None
+            return x
+        finally:
+            step.destroy()
+
+    def follow(self, p0, x0: PETSc.Vec, step: PETSc.Vec, p, iterations: int | None = None,
+               substep_mm: float | None = None):
+        """A state near the equilibrium at p (a new PETSc vector, mm), by continuation from
+        the state x0 at p0 along the straight path, with ``step`` = dx/dp (p - p0) its
+        first-order step, on the kept factorisation (nothing assembled or factorised). The
+        substeps are equal, the fewest whose first-order step moves no vertex more than
+        ``substep_mm`` along any axis; the first starts from the first-order state, every
+        later one from the secant extrapolation x_j + h/h_prev (x_j - x_(j-1)) of the last
+        two states, which follows the path's curvature; each start is relaxed by ``iterations``
+        quasi-Newton steps (`relax`), the L-BFGS pairs carried from substep to substep. A
+        secant start that inverts an element is replaced by the first-order one; where that
+        inverts too, the substep is halved; below `SolverPolicy.min_substep` of the way:
+        None. ``iterations`` and ``substep_mm`` default to the policy's path settings. The
+        relax iterations (and a factorisation, if there was none) are added to the current
+        stats. Collective."""
+        pol = self.policy
+        iterations = pol.path_iterations if iterations is None else iterations
+        substep_mm = pol.path_substep_mm if substep_mm is None else substep_mm
+        p0, p = np.asarray(p0, dtype=float), np.asarray(p, dtype=float)
+        stats = self._stats   # relax() keeps its own
+        h = 1.0 / max(1, int(np.ceil(step.norm(PETSc.NormType.INFINITY) / substep_mm)))
+        x, prev, t, h_prev, substeps = x0.copy(), None, 0.0, 0.0, 0   # t: the way done
+        found = False
+        try:
+            while t < 1.0:
+                h = min(h, 1.0 - t)
+                start = None
+                if prev is not None:   # secant
+                    start = self._offset(x, x, prev, h / h_prev)
+                if start is None:   # first-order
+                    start = self._offset(x, step, None, h)
+                if start is None:
+                    if h < self.policy.min_substep:
+                        log.info("no path to p = %s: every start from %.3g of the way inverts "
+                                 "an element", np.round(p, 3).tolist(), t)
+                        return None
+                    h /= 2
+                    continue
+                if prev is not None:
+                    prev.destroy()
+                prev, x, h_prev = x, start, h
+                t = 1.0 if t + h > 1.0 - 1e-12 else t + h
+                st = self.relax(p0 + t * (p - p0), x, iterations, resume=substeps > 0)
+                stats.newton_iterations += st.newton_iterations
+                stats.factorisations += st.factorisations
+                substeps += 1
+            found = True
+            return x
+        finally:
+            self._stats = stats
+            for v in (prev, None if found else x):
+                if v is not None:
+                    v.destroy()
+
+    def _offset(self, x, a, b, c: float):
+        """x + c (a - b) (b None: x + c a) as a new vector, or None where it inverts an
+        element (`admissible`)."""
+        d = a.copy()
+        if b is not None:
+            d.axpy(-1.0, b)
+        d.scale(c)
+        try:
+            return self.admissible(x, d)
+        finally:
+            d.destroy()
+
+    def admissible(self, x0: PETSc.Vec, step: PETSc.Vec):
+        """x0 + step (a new PETSc vector, mm), or None where it inverts an element. The
+        state u is left at the equilibrium. Collective."""
+        x = x0.copy()
+        x.axpy(1.0, step)
+        if not self._sound(x):
+            x.destroy()
+            x = None
+        self._set_state(self.u_eq)
+        return x
+
+    def relax(self, p, x: PETSc.Vec, iterations: int, resume: bool = False) -> SolveStats:
+        """At most ``iterations`` quasi-Newton (L-BFGS) steps towards the equilibrium at p
+        (Np,) from x (updated in place, mm), on the kept factorisation: nothing is assembled
+        or factorised; each step is one triangular solve pair and two residuals (its
+        critical-point line search, `_critical_step`). Stops early where L-BFGS stalls
+        (`SolverPolicy.stall_ratio`); steps that end with a larger residual norm than x
+        had, or with an inverted element, are undone. For cheap corrections of a
+        prediction; the scene's equilibrium (p, u) is unchanged. x must not invert an
+        element. ``resume``: keep the
+        L-BFGS pairs of the previous relax, if no solve came between (a continuation along
+        a path: pairs y = F(x + s) - F(x) do not depend on p, the penalty being quadratic,
+        and recent ones hold the curvature near x). Collective."""
+        p = self.set_params(p)
+        self._stats = SolveStats()
+        t0 = time.perf_counter()
+        if not self._pc_ready:   # no factorisation yet: one at the equilibrium
+            self._factorise_at_equilibrium()
+        self._f_ref = None   # residual tolerance relative to the start's residual
+        if resume and self._relaxing:
+            snes = self._qn_snes
+            snes.setTolerances(max_it=iterations)
+        else:
+            snes = self._fresh_qn_snes(iterations)
+            snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factorisation
+            self._relaxing = True
+        x0 = x.copy()
+        try:
+            snes.solve(None, x)
+            self._stats.newton_iterations = snes.getIterationNumber()
+            if not self._sound(x) or self._fnorms[-1] > self._fnorms[0]:
+                x0.copy(x)   # steps that end unsound or with a larger residual: keep x
+        finally:
+            x0.destroy()
+            self.set_params(self.p)
+            self._set_state(self.u_eq)
+        self._stats.total = time.perf_counter() - t0
+        return self._stats

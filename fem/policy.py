@@ -1,0 +1,105 @@
+"""The equilibrium solver's tuned settings, in one place, each beside its measured reason.
+
+`SolverPolicy` is a frozen dataclass: ``Equilibrium(..., policy=dataclasses.replace(
+DEFAULT_POLICY, stall_ratio=1e-3))`` changes one setting for one solver, with no module
+global touched. `PRESETS` (PETSc linear-solver options), `METHODS` (SNES options) and
+`METHOD_DEFAULTS` (per-method tolerances) are the option sets the policy's solver is built
+with. Figures are from BENCHMARKS.md and docs/decisions.md (paper size: 45.6 k vertices).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+#: Linear solver presets (PETSc options under the object's prefix); override on the command line.
+PRESETS = {
+    "direct": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 100,
+               "ksp_norm_type": "unpreconditioned", "pc_type": "cholesky",
+               "pc_factor_mat_solver_type": "mumps", "mat_mumps_icntl_13": 1,
+               "mat_mumps_icntl_24": 1},  # inertia (negative pivots) in parallel
+    "cholmod": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 100,
+                "ksp_norm_type": "unpreconditioned", "pc_type": "cholesky",
+                "pc_factor_mat_solver_type": "cholmod"},
+    "gamg": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 1000, "pc_type": "gamg",
+             "pc_gamg_type": "agg", "pc_gamg_agg_nsmooths": 1, "mg_levels_ksp_type": "chebyshev",
+             "mg_levels_pc_type": "jacobi", "mg_levels_ksp_chebyshev_esteig_steps": 20,
+             "ksp_norm_type": "unpreconditioned"},
+}
+#: Nonlinear methods (SNES options). ``qn``: L-BFGS whose initial inverse Hessian is the kept
+#: factorisation of K (scale type "jacobian"), refactorised only when a solve converges slowly;
+#: ``newton``: Newton with a factorisation every step (quadratic convergence).
+METHODS = {
+    "qn": {"snes_type": "qn", "snes_qn_type": "lbfgs", "snes_qn_scale_type": "jacobian",
+           "snes_qn_m": 10, "snes_qn_restart_type": "none", "snes_linesearch_type": "basic"},
+    "newton": {"snes_type": "newtonls"},
+}
+#: Per-method defaults of xtol (mm), max_it and lag_its (see `fem.equilibrium.Equilibrium`).
+METHOD_DEFAULTS = {"qn": dict(xtol=0.005, max_it=40, lag_its=30),
+                   "newton": dict(xtol=0.1, max_it=25, lag_its=0)}
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverPolicy:
+    """When the equilibrium solver refactorises, bisects, hands over and gives up.
+
+    Attributes (units in the names: mm, or counts):
+        qn_min_xtol: below this xtol (mm) quasi-Newton's linear rate (~10 iterations a
+            decade) loses to Newton's quadratic one: such solves use Newton.
+        stall_its, stall_ratio: quasi-Newton has stalled when the residual norm fell by less
+            than ``stall_ratio`` over the last ``stall_its`` iterations (healthy: ~10x per
+            10); then K is refactorised at the current iterate and L-BFGS restarts there,
+        qn_refreshes: ... up to this many times, before Newton takes over;
+        quick_refreshes: ... and this many in a quick solve (a plan's line-search trial,
+            which can be shortened instead).
+        rate_max: largest linear rate quasi-Newton's stopping test assumes (the error a
+            step leaves at rate ρ is ρ/(1-ρ) of it): a factorisation from far away converged
+            at ρ ≈ 0.7 and stopped 4.7e-3 mm from the equilibrium without the scaling.
+        mumps_workspace_retries: MUMPS's workspace (ICNTL(14)) is doubled at most this
+            often when it reports a too small one.
+        max_halvings: quasi-Newton's line search halves a trial that inverts an element at
+            most this often; then SNES takes the step and a NaN residual fails it.
+        qn_bisections: a solve meets its first failures of quasi-Newton by bisecting the
+            step in p (continuation on the cheap solver); later ones hand over to Newton. At
+            paper size a 20 mm advance from rest was solved in 73 s this way; Newton after
+            the first failure ran > 300 s.
+        tangent_lag_its: a tangent (adjoint, sensitivity) solve that needs more CG
+            iterations than this with the kept factorisation has the next one refactorise at
+            the equilibrium.
+        tangent_refresh_xtols: a quasi-Newton solve told that tangent solves follow, past
+            ``tangent_lag_its`` iterations and within this many xtol of convergence,
+            refactorises once at its iterate, so its last iterations and the tangent solves
+            share a factorisation near the equilibrium. Paper size, from rest (plain: forward
+            11.0 s, adjoint 3.4 s): 10 xtol 12.8 + 1.0 s, 30 xtol 11.8 + 1.6 s, 100 xtol
+            11.5 + 1.8 s, 300 xtol: refreshed too far away (10.7 + 3.4 s).
+        path_substep_mm, path_iterations, min_substep: path following (`follow`): substeps
+            whose first-order step moves no vertex more than ``path_substep_mm``, each relaxed
+            by ``path_iterations`` quasi-Newton steps; where every start of a substep shorter
+            than ``min_substep`` of the way inverts an element, it gives up. A 20 mm advance
+            and 6 mm lateral shift from rest, class3-asym: coarse 2.3 -> 0.85 s, paper 68.6 ->
+            29.4 s (3 factorisations instead of 8); 3 mm substeps on coarse: 0.10 mm in
+            0.6 s against 0.19 mm in 0.5 s for 4 mm.
+        goal_tolerance_mm: an equilibrium whose active vertices stay farther than this from
+            their goals is reported (the tissue resists the treatment, or k is too soft).
+        goal_failure_mm: farther than this, the state is not the treatment's equilibrium but
+            crushed tissue holding the bone back: it counts as a failed solve.
+    """
+
+    qn_min_xtol: float = 1e-4
+    stall_its: int = 5
+    stall_ratio: float = 0.5
+    qn_refreshes: int = 3
+    quick_refreshes: int = 1
+    rate_max: float = 0.9
+    max_halvings: int = 20
+    mumps_workspace_retries: int = 4
+    qn_bisections: int = 3
+    tangent_lag_its: int = 5
+    tangent_refresh_xtols: float = 30.0
+    path_substep_mm: float = 4.0
+    path_iterations: int = 6
+    min_substep: float = 1.0 / 64
+    goal_tolerance_mm: float = 0.05
+    goal_failure_mm: float = 1.0
+
+
+DEFAULT_POLICY = SolverPolicy()
