@@ -62,7 +62,9 @@ def _ratios(sim: dict, param: str) -> list:
     return out
 
 
-def ct(args, header, table, write_section) -> None:
+def ct(args) -> None:
+    from scripts._bench import header, table, write_section
+
     rows, ratio_rows = [], []
     for name in args.cts.split(","):
         ct_path, scene, param, goal, plan_params = CTS[name]

@@ -76,7 +76,9 @@ def measure(resolution: str, ranks: int, events: int, screenshot: Path | None) -
     return out
 
 
-def explorer(args, header, table, write_section) -> None:
+def explorer(args) -> None:
+    from scripts._bench import header, table, write_section
+
     rows = []
     shot = ROOT / args.screenshot if args.screenshot else None
     for res in args.resolutions.split(","):

@@ -40,8 +40,9 @@ def ratios(simulate, case: str, res: str) -> dict:
     return out
 
 
-def plausibility(args, simulate, header, table, write_section) -> None:
+def plausibility(args) -> None:
     from meshes.synthetic import CASES, GENERATOR_VERSION
+    from scripts._bench import header, simulate, table, write_section
 
     cases = args.cases.split(",") if args.cases else sorted(CASES)
     head = ["treatment", "landmark", "published", "source"]

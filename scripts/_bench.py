@@ -1,0 +1,183 @@
+"""Shared by the benchmarks (``scripts/bench*.py``): the machine line, a fresh script process
+per configuration, the BENCHMARKS.md sections, tables and plots.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from scripts._launch import mpirun  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+BENCH_MD = ROOT / "BENCHMARKS.md"
+
+
+DOCS = ROOT / "docs"
+
+
+#: The fixed class3 treatment of the accuracy study (NAME=VALUE, mm).
+TREATMENT = ["mandible.advance_mm=5", "mandible.lateral_mm=1", "maxilla_L.advance_mm=2",
+             "maxilla_R.advance_mm=2"]
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GiB, {platform.platform()}"
+
+
+def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
+              args=None, timeout: float | None = None) -> dict:
+    args = args or ["--case", "class3", "--resolution", res, "--solver", solver, "--p",
+                    "mandible.advance_mm=5"]
+    with tempfile.TemporaryDirectory() as d:
+        rep = Path(d) / "r.json"
+        cmd = [sys.executable, str(ROOT / "scripts" / script), *args, "--report", str(rep),
+               *extra]
+        cmd = [*mpirun(n), *cmd]
+        env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+        try:
+            r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"error": f"not solved within {timeout:g} s (stopped)"}
+        if r.returncode != 0:
+            return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
+        return json.loads(rep.read_text())
+
+
+def write_section(name: str, body: str) -> None:
+    """Replace (or append) the section between ``<!-- name -->`` markers in BENCHMARKS.md."""
+    text = BENCH_MD.read_text(encoding="utf-8") if BENCH_MD.exists() else "# Benchmarks\n"
+    start, end = f"<!-- {name} -->", f"<!-- /{name} -->"
+    block = f"{start}\n{body.rstrip()}\n{end}"
+    if start in text:
+        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text,
+                      flags=re.S)
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = BENCH_MD.with_suffix(".md.part")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, BENCH_MD)
+
+
+def plot(name: str, draw) -> str:
+    """Draw with ``draw(plt)`` and save ``docs/<name>.png`` atomically; returns its path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    DOCS.mkdir(exist_ok=True)
+    draw(plt)
+    plt.tight_layout()
+    tmp = DOCS / f".{name}.part.png"
+    plt.savefig(tmp, dpi=110)
+    plt.close("all")
+    os.replace(tmp, DOCS / f"{name}.png")
+    return f"docs/{name}.png"
+
+
+def command(args) -> str:
+    return "python3 scripts/bench.py " + " ".join(sys.argv[1:]) if sys.argv[1:] else \
+        f"python3 scripts/bench.py {args.what}"
+
+
+def header(title: str, args) -> list:
+    return [f"## {title}", "", f"Command: `{command(args)}`", "", f"Machine: {machine()}.", ""]
+
+
+def table(head: list, rows: list) -> list:
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+            *("| " + " | ".join(map(str, r)) + " |" for r in rows)]
+
+
+def landmark_motion(report: dict) -> dict:
+    """{landmark: (3,) displacement, mm} from a simulate.py report."""
+    import numpy as np
+
+    return {n: np.subtract(x, report["landmarks_rest"][n]) for n, x in report["landmarks"].items()}
+
+
+def fd_gradient(scene, obj, h: float):
+    """Forward-difference dT/dp (Np,): Np warm forward solves from the current equilibrium,
+    which is restored afterwards."""
+    import numpy as np
+
+    base = scene.eq.snapshot()
+    p, T0 = scene.eq.p.copy(), obj.value()
+    fd = np.empty(len(p))
+    for i in range(len(p)):
+        scene.solve(p + h * np.eye(len(p))[i])
+        fd[i] = (obj.value() - T0) / h
+        scene.eq.restore(base)
+    return fd
+
+
+def prediction_errors(scene, mags) -> list:
+    """Plain and corrected first-order skin predictions against true equilibria, for
+    the mandible advanced by m and shifted 0.3 m (mm), m in ``mags``, from the scene's
+    equilibrium p0."""
+    import time
+
+    import numpy as np
+
+    from inverse.explore import SkinPredictor
+
+    base, rows = scene.eq.snapshot(), []
+    names = scene.param_names
+    for mag in mags:
+        scene.eq.restore(base)
+        pred = SkinPredictor(scene)   # K(p0) factorised again: the previous m replaced it
+        dp = np.zeros(len(names))
+        dp[names.index("mandible.advance_mm")] = mag
+        dp[names.index("mandible.lateral_mm")] = 0.3 * mag
+        t = time.perf_counter()
+        for _ in range(100):
+            plain = pred.predict(dp)
+        t_plain = (time.perf_counter() - t) / 100
+        t = time.perf_counter()
+        corr, _ = pred.corrected(dp)
+        t_corr = time.perf_counter() - t
+        try:
+            t = time.perf_counter()
+            scene.solve(pred.p0 + dp)
+            t_true = time.perf_counter() - t
+        except Exception as e:  # report, do not stop the benchmark
+            rows.append(dict(mag=mag, error=str(e)[:80]))
+            pred.destroy()
+            continue
+        true = pred.op.apply(scene.eq.u_eq.array)
+        scene.eq.restore(base)
+        pred.destroy()
+        rows.append(dict(mag=mag, disp=np.linalg.norm(true - pred.x0, axis=1).max(),
+                         plain=np.linalg.norm(plain - true, axis=1).max(),
+                         corr=np.linalg.norm(corr - true, axis=1).max(),
+                         t_plain_ms=1e3 * t_plain, t_corr=t_corr, t_true=t_true))
+    return rows
+
+
+#: How the benchmarks' corrected prediction is made and timed.
+CORRECTED = ("Corrected (`SkinPredictor.corrected`): continuation on the kept factorisation "
+             "of K(p0), in substeps whose first-order step moves no vertex more than "
+             "`CORRECTION_SUBSTEP_MM` = 4 mm, each started from the secant extrapolation of "
+             "the last two (the first: first-order) and relaxed by `CORRECTION_ITERATIONS` = 6 "
+             "quasi-Newton steps, the L-BFGS pairs kept from substep to substep; no assembly "
+             "of K, no factorisation (a fresh predictor for each m, so every correction and "
+             "true solve starts from the factorisation at p0).")

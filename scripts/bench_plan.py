@@ -1,0 +1,146 @@
+"""``bench.py plan``: class3-asym. In one process: the costs of one forward solve, the adjoint
+gradient, the landmark block S_T, the finite-difference gradient (Np + 1 forward solves),
+the skin sensitivities, a first-order prediction and a corrected one; then the whole plan
+from p = 0 with ``scripts/plan.py`` (default goal).
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+
+from scripts._bench import (
+    CORRECTED,
+    ROOT,
+    fd_gradient,
+    machine,
+    prediction_errors,
+    simulate,
+    write_section,
+)
+
+
+def _derivative_costs(res: str, mags) -> dict:
+    """Times (s) and errors (mm) of the derivative machinery at one equilibrium, 1 rank."""
+    import time
+
+    import numpy as np
+
+    sys.path.insert(0, str(ROOT))
+    from inverse.explore import SkinPredictor
+    from inverse.scene import Scene
+    from inverse.treatment import PLAN_PARAMS
+
+    out = {}
+    for tangent in (False, True):   # each from rest on a fresh scene (factorisation at rest)
+        scene = Scene.from_case("class3-asym", res, params_used=PLAN_PARAMS)
+        p = scene.param_vector({"mandible.advance_mm": -4.0, "mandible.yaw_deg": -3.0,
+                                "maxilla.advance_mm": 1.5})
+        obj = scene.objective(scene.default_targets())
+        key = "tangent" if tangent else "plain"
+        t = time.perf_counter()
+        scene.solve(p, tangent=tangent)
+        out[f"forward_{key}"] = time.perf_counter() - t
+        t = time.perf_counter()
+        g = obj.gradient()
+        out[f"adjoint_{key}"] = time.perf_counter() - t
+        out[f"adjoint_cg_{key}"] = scene.eq.tangent_ksp.getIterationNumber()
+        out["n_params"] = len(p)
+    t = time.perf_counter()
+    S, mode = obj.jacobian()
+    out["S_T"], out["S_T_mode"] = time.perf_counter() - t, mode
+    # finite differences: Np forward solves from the equilibrium (warm, predicted)
+    base = scene.eq.snapshot()
+    t = time.perf_counter()
+    fd = fd_gradient(scene, obj, 1e-3)
+    out["fd_gradient"] = time.perf_counter() - t
+    out["fd_vs_adjoint_rel_diff"] = float(np.abs(fd - g).max() / np.abs(g).max())
+    scene.solve(p + 1e-3)          # a warm forward solve (the plan's line-search trials)
+    scene.eq.restore(base)
+    t = time.perf_counter()
+    scene.solve(p + np.r_[0.5, np.zeros(len(p) - 1)])
+    out["forward_warm"] = time.perf_counter() - t
+    scene.eq.restore(base)
+    scene.solve(np.zeros(len(p)))   # explore from the rest face
+    base = scene.eq.snapshot()
+    scene.eq.sensitivity()
+    t = time.perf_counter()
+    pred = SkinPredictor(scene)
+    out["skin_sensitivity"] = time.perf_counter() - t
+    out["n_skin"] = len(pred.vertices)
+    pred.destroy()
+    rows = prediction_errors(scene, mags)
+    out["predictions"] = rows
+    return out
+
+
+def plan(args) -> None:
+    lines = ["## Planning (class3-asym, default goal: 7 landmarks, `PLAN_PARAMS`: 10)", "",
+             f"Command: `python3 scripts/bench.py plan --resolutions {args.resolutions} "
+             f"--ranks {args.ranks} --magnitudes {args.magnitudes} --occlusions "
+             f"{args.occlusions}`", "",
+             f"Machine: {machine()}.", "",
+             "### Derivatives at one equilibrium (1 rank, seconds)", "",
+             "Forward solves from rest to the plan's typical first move (mandible -4 mm, "
+             "yaw -3°, maxilla 1.5 mm), then one adjoint gradient. Plain: the adjoint "
+             "factorises K at the equilibrium (quasi-Newton's factorisation is K at rest); "
+             "tangent-ready (`solve(tangent=True)`): the forward solve refactorises once "
+             "near convergence (`SolverPolicy.tangent_refresh_xtols`) and the adjoint's CG "
+             "reuses that factorisation. The columns after it are from the tangent-ready "
+             "solve.", "",
+             "| resolution | forward plain | adjoint (factorises) | forward tangent-ready | "
+             "adjoint gradient (CG its) | adjoint / forward | forward, warm | "
+             "S_T (mode) | FD gradient (Np solves) | FD/adjoint time | FD vs adjoint |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    pred_lines = ["", "### First-order exploration of the whole skin (1 rank)", "",
+                  "From the rest face, mandible advanced by m mm and shifted 0.3 m mm; "
+                  "errors are the max over the skin against the true equilibrium. "
+                  + CORRECTED, "",
+                  "| resolution | skin vertices | skin S s (Np solves excluded: see S_T) | m mm | "
+                  "max skin displacement mm | "
+                  "plain error mm | plain ms/call | corrected error mm | corrected s |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+    for res in args.resolutions.split(","):
+        c = _derivative_costs(res, [float(m) for m in args.magnitudes.split(",")])
+        row = (f"| {res} | {c['forward_plain']:.2f} | {c['adjoint_plain']:.2f} | "
+               f"{c['forward_tangent']:.2f} | {c['adjoint_tangent']:.2f} "
+               f"({c['adjoint_cg_tangent']}) | "
+               f"**{c['adjoint_tangent'] / c['forward_tangent']:.2f}** | "
+               f"{c['forward_warm']:.2f} | {c['S_T']:.2f} ({c['S_T_mode']}) | "
+               f"{c['fd_gradient']:.2f} | {c['fd_gradient'] / c['adjoint_tangent']:.0f}x | "
+               f"{c['fd_vs_adjoint_rel_diff']:.1e} |")
+        print(row, flush=True)
+        lines.append(row)
+        for r in c["predictions"]:
+            if "error" in r:
+                pred_lines.append(f"| {res} | | | {r['mag']:g} | failed: {r['error']} |"
+                                  " | | | |")
+                continue
+            pred_lines.append(
+                f"| {res} | {c['n_skin']} | {c['skin_sensitivity']:.2f} | {r['mag']:g} | "
+                f"{r['disp']:.2f} | {r['plain']:.3f} | {r['t_plain_ms']:.3f} | "
+                f"{r['corr']:.3f} | {r['t_corr']:.2f} |")
+            print(pred_lines[-1], flush=True)
+    lines += pred_lines
+    lines += ["", "### Whole plan from p = 0 (`scripts/plan.py`, default options)", "",
+              "`--occlusion free`: `PLAN_PARAMS` (10); `final`: the six `jaws.*` motions with "
+              "the mandible held in the final occlusion (`make demo`).", "",
+              "| resolution | occlusion | ranks | GN iterations | forward solves | mean distance "
+              "before mm | after mm | forward s | sensitivity s | adjoint s | line search s | "
+              "total s |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for res, occ in itertools.product(args.resolutions.split(","), args.occlusions.split(",")):
+        for n in map(int, args.ranks.split(",")):
+            r = simulate(res, "direct", n, script="plan.py",
+                          args=["--case", "class3-asym", "--resolution", res, "--occlusion", occ])
+            if "error" in r:
+                lines.append(f"| {res} | {occ} | {n} | failed: {r['error'][:60]} | | | | | | | | |")
+            else:
+                t = r["timings_s"]
+                lines.append(
+                    f"| {res} | {occ} | {n} | {r['gn_iterations']} | {r['forward_solves']} | "
+                    f"{r['mean_distance_before_mm']:.2f} | {r['mean_distance_after_mm']:.2f} | "
+                    f"{t['forward']:.1f} | {t['sensitivity']:.1f} | {t['adjoint']:.1f} | "
+                    f"{t['line_search']:.1f} | **{t['total']:.1f}** |")
+            print(lines[-1], flush=True)
+    write_section("plan", "\n".join(lines))
