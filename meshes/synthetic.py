@@ -18,7 +18,7 @@ cut the free bone reaches ``SPLIT_MM`` back: the sagittal split's overlap, where
 of the proximal segment and the distal segment slide along each other. With only ``BAND_MM / 2``
 there, a 6 mm setback (4.7 mm lateral) crushed the tissue over the split (det F 0.09, 26
 factorisations from rest on coarse; 10 mm with 3 mm lateral failed); with 15 mm: det F 0.59
-and 2 factorisations (10 mm: 20), measured in session 6. Like the cut bands, the zone spans
+and 2 factorisations (10 mm: 20). Like the cut bands, the zone spans
 every height, so it also frees bone above the occlusal plane behind the cut (upper ramus and
 cheek: ~2100 mm² on coarse); confining it to the ramus is open.
 Cases differ in the position and yaw of the mandible (and a little of the maxilla).
