@@ -166,8 +166,9 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         residual = ufl.derivative(energy, self.u, v)
         jacobian = ufl.derivative(residual, self.u, du)
         coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant
-        self.forms = {k: compat.form(f) for k, f in dict(
-            energy=energy, residual=residual, jacobian=jacobian, coupling=coupling).items()}
+        self.ufl_forms = dict(energy=energy, residual=residual, jacobian=jacobian,
+                              coupling=coupling)   # also for peers (``bench.py peers``)
+        self.forms = {k: compat.form(f) for k, f in self.ufl_forms.items()}
         self.bcs = domain.dirichlet_bcs()
         self.A = compat.create_matrix(self.forms["jacobian"])
         self.A.setOption(PETSc.Mat.Option.SYMMETRIC, True)

@@ -9,9 +9,11 @@
     python3 scripts/bench.py plausibility [--resolutions coarse,paper] [--cases class1]
     python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper]
     python3 scripts/bench.py explorer [--resolutions coarse,paper] [--ranks 1,2]
+    python3 scripts/bench.py peers [--resolutions tiny,coarse,medium,paper] [--ranks 1,2]
 
 One module a benchmark: ``bench_forward`` (forward, stress), ``bench_plan``,
-``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_explorer``; the shared
+``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_explorer``,
+``bench_peers``; the shared
 helpers in ``_bench``. This file checks the options and dispatches.
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
@@ -161,6 +163,10 @@ def main():
     e.add_argument("--events", default="60", help="slider events timed per row")
     e.add_argument("--screenshot", default="docs/explorer.png",
                    help="picture of the last row's page, relative to the project ('' none)")
+    pe = sub.add_parser("peers", help="the tutorial recipe, finite differences and LM + FD "
+                        "beside orthodiff, in one run")
+    pe.add_argument("--resolutions", default="tiny,coarse,medium,paper")
+    pe.add_argument("--ranks", default="1,2")
     args = ap.parse_args()
     try:
         check_args(args)
@@ -171,13 +177,15 @@ def main():
         bench_ct,
         bench_explorer,
         bench_forward,
+        bench_peers,
         bench_plan,
         bench_plausibility,
     )
 
     {"forward": bench_forward.forward, "plan": bench_plan.plan, "stress": bench_forward.stress,
      "accuracy": bench_accuracy.accuracy, "plausibility": bench_plausibility.plausibility,
-     "ct": bench_ct.ct, "explorer": bench_explorer.explorer}[args.what](args)
+     "ct": bench_ct.ct, "explorer": bench_explorer.explorer,
+     "peers": bench_peers.peers}[args.what](args)
 
 
 if __name__ == "__main__":
