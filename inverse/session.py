@@ -71,10 +71,10 @@ class Session:
         self.occlusion = "free" if scene.treatment.occlusion is None else "final"
         self._make_scene, self.scenes = make_scene, {self.occlusion: scene}
         self.rest_landmarks = scene.landmarks(rest=True)   # the same in every scene
-        if targets is None and scene.case is not None:
-            targets = scene.default_targets()
-        self.targets = None if targets is None else check_targets(self.rest_landmarks, {
-            n: np.asarray(x, dtype=float).tolist() for n, x in targets.items()})
+        if targets is None and scene.case is not None:   # (3,) arrays: as JSON lists
+            targets = {n: np.asarray(x).tolist() for n, x in scene.default_targets().items()}
+        self.targets = None if targets is None else check_targets(self.rest_landmarks,
+                                                                  targets)
         self.pred = None
         self.relinearise(np.zeros(len(scene.param_names)) if p0 is None
                          else scene.param_vector(p0))

@@ -221,6 +221,24 @@ def load_params(path, pairs, scene) -> dict:
     return values
 
 
+def read_json(path, what: str, comm):
+    """A JSON file read on rank 0, on every rank; `InputError` ("cannot read <what> <path>:
+    why") in one line otherwise. Collective."""
+    from meshes.errors import InputError
+
+    data, err = None, None
+    if comm.rank == 0:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                data = json.load(fh)
+        except (OSError, ValueError) as e:
+            err = f"cannot read {what} {path}: {e}"
+    data, err = comm.bcast((data, err), root=0)
+    if err:
+        raise InputError(err)
+    return data
+
+
 def run_main(main) -> int:
     """Run ``main``; report an orthodiff error on rank 0 as one line and exit code 2."""
     import signal

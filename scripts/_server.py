@@ -23,8 +23,6 @@ import time
 
 import numpy as np
 
-from fem.limits import check
-from inverse.session import OCCLUSIONS
 from meshes.errors import InputError, OrthodiffError
 
 log = logging.getLogger("orthodiff.explore_web")
@@ -128,11 +126,9 @@ class Server:
 
     def _execute(self, name: str, kwargs: dict):
         """Run one session method on every rank: ("ok", result) or (kind, message)."""
-        progress = None
         if name == "plan":
             self.progress = {"running": "plan", "history": []}
-            progress = self._progress
-            kwargs = dict(kwargs, progress=progress)
+            kwargs = dict(kwargs, progress=self._progress)
         try:
             out = getattr(self.session, name)(**kwargs)
             if name in MOVES_P0:
@@ -261,16 +257,9 @@ class Server:
         for name in ("solve", "corrected", "relinearise", "match", "export"):
             app.post(f"/api/{name}")(with_params(name))
 
-        def plan_arguments(data):
-            kwargs = {"targets": session.request_targets(data.get("targets")),
-                      "occlusion": data.get("occlusion", session.occlusion)}
-            if kwargs["occlusion"] not in OCCLUSIONS:
-                raise InputError(f"'occlusion' must be one of {list(OCCLUSIONS)}, got "
-                                 f"{kwargs['occlusion']!r}")
-            for key in PLAN_KEYS[2:]:   # the plan.py options, in their fem.limits range
-                if key in data:
-                    kwargs[key] = check(key, data[key])
-            return kwargs
+        def plan_arguments(data):   # Session.plan checks the occlusion and the options
+            return dict(data, targets=session.request_targets(data.get("targets")),
+                        occlusion=data.get("occlusion", session.occlusion))
 
         @app.post("/api/plan")
         async def plan(request: Request):

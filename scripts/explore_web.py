@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
     load_params,
     parse,
+    read_json,
     run_main,
     scene_from_args,
     scene_parser,
@@ -50,7 +51,7 @@ def main(argv=None):
     ap.add_argument("--port", default=8765, help="TCP port (0: any free port)")
     argv = sys.argv[1:] if argv is None else list(argv)
     args, comm = parse(ap, argv)
-    from inverse.session import Session, check_targets
+    from inverse.session import Session
     from meshes.errors import InputError
     from scripts._server import Server, bind
 
@@ -66,7 +67,7 @@ def main(argv=None):
     err = comm.bcast(err, root=0)
     if err:
         raise InputError(err)
-    report = _read_json(args.plan_report, "plan report", comm) if args.plan_report else None
+    report = read_json(args.plan_report, "plan report", comm) if args.plan_report else None
     if report is not None:
         _apply_report(args, argv, report)
     first, used = args.occlusion, args.params_used
@@ -83,11 +84,9 @@ def main(argv=None):
         p0 = load_params(args.params, args.p, scene)
     targets = None
     if args.targets:
-        targets = _read_json(args.targets, "targets file", comm)
+        targets = read_json(args.targets, "targets file", comm)
     elif report is not None:
         targets = {n: v["target"] for n, v in report.get("landmarks", {}).items()}
-    if targets is not None:
-        targets = check_targets(scene.landmarks(rest=True), targets)
     session = Session(scene, make_scene, scene.param_vector(p0), targets)
     try:
         return Server(session, comm, sock, PAGE_FILES, WEB, THREE, MAX_BODY).run()
@@ -110,24 +109,6 @@ def _apply_report(args, argv, report: dict) -> None:
         args.occlusion = "free" if report.get("occlusion") is None else "final"
     if "--params-used" not in given:
         args.params_used = ",".join(report["param_names"])
-
-
-def _read_json(path, what: str, comm):
-    """A JSON file read on rank 0, on every rank; `InputError` in one line."""
-    import json
-
-    from meshes.errors import InputError
-
-    data, err = None, None
-    if comm.rank == 0:
-        try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, ValueError) as e:
-            err = f"cannot read {what} {path}: {e}"
-    data, err = comm.bcast((data, err), root=0)
-    if err:
-        raise InputError(err)
-    return data
 
 
 if __name__ == "__main__":

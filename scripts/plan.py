@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
     names_list,
     parse,
+    read_json,
     run_main,
     scene_from_args,
     scene_parser,
@@ -38,18 +39,9 @@ def _load_checkpoint(path, signature: dict, comm) -> dict:
 
     if not path:
         raise InputError("--resume needs --checkpoint FILE (or --report)")
-    state, err = None, None
-    if comm.rank == 0:
-        try:
-            with open(path) as fh:
-                state = json.load(fh)
-            if not isinstance(state, dict) or not state.get("history"):
-                err = f"checkpoint {path} holds no plan state"
-        except (OSError, ValueError) as e:
-            err = f"cannot read checkpoint {path}: {e}"
-    state, err = comm.bcast((state, err), root=0)
-    if err:
-        raise InputError(err)
+    state = read_json(path, "checkpoint", comm)
+    if not isinstance(state, dict) or not state.get("history"):
+        raise InputError(f"checkpoint {path} holds no plan state")
     old = state.get("signature", {})
     for key, value in json.loads(json.dumps(signature)).items():
         if old.get(key) != value:

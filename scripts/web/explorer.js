@@ -338,8 +338,6 @@ async function action(label, fn) {
   }
 }
 
-function paramsObject() { return explorer.params(); }
-
 function showAnswer(r, label) {   // the answer's skin, coloured by the first-order error
   predict();   // the first-order skin at these parameters
   const first = state.shown;
@@ -413,22 +411,22 @@ function wire() {
   $('profile').onclick = () => look(new THREE.Vector3(-1, 0, 0));
   $('colour').onchange = () => requestFrame();
   $('solve').onclick = () => action('Solve', async () =>
-    showAnswer(await api('/api/solve', { p: paramsObject() }), 'true equilibrium'));
+    showAnswer(await api('/api/solve', { p: explorer.params() }), 'true equilibrium'));
   $('corrected').onclick = () => action('Corrected', async () =>
-    showAnswer(await api('/api/corrected', { p: paramsObject() }), 'corrected prediction'));
+    showAnswer(await api('/api/corrected', { p: explorer.params() }), 'corrected prediction'));
   $('relinearise').onclick = () => action('Re-linearise', async () => {
-    const r = await api('/api/relinearise', { p: paramsObject() });
+    const r = await api('/api/relinearise', { p: explorer.params() });
     await reload(null, `re-linearised here in ${r.seconds.toFixed(2)} s`);
   });
   $('plan').onclick = () => action('Plan', plan);
   $('match').onclick = () => action('Match', async () => {
-    const r = await api('/api/match', { p: paramsObject() });
+    const r = await api('/api/match', { p: explorer.params() });
     await reload(r.p, `match: true face within ${r.distance_max_mm.toFixed(3)} mm (mean ` +
       `${r.distance_mean_mm.toFixed(3)}) of the predicted one, ${r.gn_iterations} ` +
       `iterations, ${r.seconds.toFixed(1)} s`);
   });
   $('export').onclick = () => action('Export', async () => {
-    const r = await api('/api/export', { p: paramsObject() });
+    const r = await api('/api/export', { p: explorer.params() });
     const lm = predictedLandmarks();
     r.landmarks_predicted = Object.fromEntries(state.lmNames.map((n, i) =>
       [n, Array.from(lm.slice(3 * i, 3 * i + 3))]));
