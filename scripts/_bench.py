@@ -62,18 +62,61 @@ def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
         return json.loads(rep.read_text())
 
 
-def write_section(name: str, body: str) -> None:
-    """Replace (or append) the section between ``<!-- name -->`` markers in BENCHMARKS.md."""
-    text = BENCH_MD.read_text(encoding="utf-8") if BENCH_MD.exists() else "# Benchmarks\n"
-    start, end = f"<!-- {name} -->", f"<!-- /{name} -->"
-    block = f"{start}\n{body.rstrip()}\n{end}"
-    if start in text:
-        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text,
-                      flags=re.S)
+#: BENCHMARKS.md's sections in the report's order (their markers) and the subcommand that
+#: writes each; ``bench.py all`` runs them all.
+SECTIONS = {"forward": "forward", "stress": "stress", "plan": "plan", "peers": "peers",
+            "accuracy-mesh": "accuracy", "accuracy-order": "accuracy",
+            "accuracy-tolerance": "accuracy", "accuracy-tolerance-qn": "accuracy",
+            "accuracy-prediction": "accuracy", "accuracy-gradient": "accuracy",
+            "plausibility": "plausibility", "ct": "ct", "explorer": "explorer"}
+
+INTRO = """# Benchmarks
+
+Written whole by `python3 scripts/bench.py all`; each subcommand rewrites its own sections and
+this file around them, so nothing here is older than its section's command. Each section
+gives its command, the machine, one table of the current code and its plot (under `docs/`).
+The goals table is collected from the sections. What was tried and dropped is in
+[docs/decisions.md](docs/decisions.md). The machine is noisy: compare figures within one
+section, which is one run."""
+
+_BLOCK = re.compile(r"<!-- ([a-z-]+) -->\n(.*?)\n<!-- /\1 -->", re.S)
+_GOALS = re.compile(r"^<!-- goals: (.*) -->$", re.M)
+
+
+def goal(name: str, value: float, unit: str, limit: float | None = None,
+         peer: float | None = None, source: str = "", note: str = "") -> dict:
+    """One row of the goals table: orthodiff's ``value`` (unit) against an upper ``limit``
+    (met or missed, by how much) or a ``peer``'s figure measured in the same run (the speed-up);
+    ``source`` says whose target it is (the paper, an issue), ``note`` adds to the figure."""
+    if limit is not None:
+        target, r = f"≤ {limit:g} {unit}" + (f" ({source})" if source else ""), value / limit
+        ratio = f"{r:.2f}: met" if r <= 1 else f"{r:.2f}: **missed**"
     else:
-        text = text.rstrip() + "\n\n" + block + "\n"
+        target = f"{peer:.3g} {unit}" + (f" ({source})" if source else "")
+        ratio = f"**{peer / value:.1f}x faster**"
+    return {"goal": name, "target": target, "orthodiff": f"{value:.3g} {unit}".strip()
+            + (f", {note}" if note else ""), "ratio": ratio}
+
+
+def write_section(name: str, body: str, goals=()) -> None:
+    """Replace the section ``name`` (a key of `SECTIONS`) and write BENCHMARKS.md whole:
+    `INTRO`, the goals table of every section's ``goals`` (`goal` rows), then the sections in
+    `SECTIONS` order. Text outside the sections is not kept. Atomic."""
+    if name not in SECTIONS:
+        raise ValueError(f"unknown BENCHMARKS.md section {name!r}")
+    text = BENCH_MD.read_text(encoding="utf-8") if BENCH_MD.exists() else ""
+    blocks = {m.group(1): m.group(2) for m in _BLOCK.finditer(text) if m.group(1) in SECTIONS}
+    blocks[name] = body.rstrip() + ("\n\n<!-- goals: " + json.dumps(list(goals)) + " -->"
+                                    if goals else "")
+    rows = [[g["goal"], g["target"], g["orthodiff"], g["ratio"]]
+            for s in SECTIONS if s in blocks for m in _GOALS.finditer(blocks[s])
+            for g in json.loads(m.group(1))]
+    parts = [INTRO, "\n".join(["## Goals", "", "Each row from the section named in its goal; "
+                               "a peer's figure is from the same run as orthodiff's.", "",
+                               *table(["goal", "target", "orthodiff", "ratio"], rows)])]
+    parts += [f"<!-- {s} -->\n{blocks[s]}\n<!-- /{s} -->" for s in SECTIONS if s in blocks]
     tmp = BENCH_MD.with_suffix(".md.part")
-    tmp.write_text(text, encoding="utf-8")
+    tmp.write_text("\n\n".join(parts) + "\n", encoding="utf-8")
     os.replace(tmp, BENCH_MD)
 
 
@@ -95,8 +138,8 @@ def plot(name: str, draw) -> str:
 
 
 def command(args) -> str:
-    return "python3 scripts/bench.py " + " ".join(sys.argv[1:]) if sys.argv[1:] else \
-        f"python3 scripts/bench.py {args.what}"
+    """The bench.py command line that ran this benchmark (``args.argv``, set by bench.py)."""
+    return "python3 scripts/bench.py " + " ".join(getattr(args, "argv", [args.what]))
 
 
 def header(title: str, args) -> list:

@@ -2,7 +2,7 @@
 """Benchmarks (not timed tests). Results are printed and written into BENCHMARKS.md.
 
     python3 scripts/bench.py forward [--resolutions tiny,coarse,medium,paper]
-                                     [--solvers direct,gamg] [--ranks 1,2]
+                                     [--solvers direct,cholmod] [--ranks 1,2]
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
@@ -10,6 +10,7 @@
     python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper]
     python3 scripts/bench.py explorer [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py peers [--resolutions tiny,coarse,medium,paper] [--ranks 1,2]
+    python3 scripts/bench.py all       # every one above with its defaults: BENCHMARKS.md whole
 
 One module a benchmark: ``bench_forward`` (forward, stress), ``bench_plan``,
 ``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_explorer``,
@@ -45,6 +46,11 @@ from scripts._bench import ROOT  # noqa: E402
 #: Most ranks a benchmark may ask for (the machine has 2 cores; more only oversubscribe),
 #: and the largest move (mm) it may ask for: the stress table's largest is 20 mm.
 MAX_RANKS, MAX_MOVE_MM = 64, 100.0
+
+#: ``bench.py all``: every subcommand with its defaults, in BENCHMARKS.md's order.
+ALL = ("forward", "stress", "plan", "peers", "accuracy", "plausibility", "ct", "explorer")
+
+
 def check_args(args) -> None:
     """Every option of the benchmark in range, lists not empty: ValueError naming the
     option and what it allows otherwise."""
@@ -122,7 +128,8 @@ def main():
     sub = ap.add_subparsers(dest="what", required=True, parser_class=_Parser)
     f = sub.add_parser("forward", help="forward equilibrium across resolutions and solvers")
     f.add_argument("--resolutions", default="tiny,coarse,medium,paper")
-    f.add_argument("--solvers", default="direct,cholmod,gamg")
+    f.add_argument("--solvers", default="direct,cholmod",
+                   help="presets (gamg: ~100x slower at paper, see docs/decisions.md)")
     f.add_argument("--ranks", default="1,2")
     f.add_argument("--methods", default="qn,newton")
     f.add_argument("--iterative-up-to", default="paper",
@@ -167,11 +174,18 @@ def main():
                         "beside orthodiff, in one run")
     pe.add_argument("--resolutions", default="tiny,coarse,medium,paper")
     pe.add_argument("--ranks", default="1,2")
-    args = ap.parse_args()
-    try:
-        check_args(args)
-    except ValueError as e:   # one line, exit 2, before any work (issue 19)
-        ap.error(str(e))
+    sub.add_parser("all", help="every benchmark with its defaults: BENCHMARKS.md whole")
+    argv = sys.argv[1:]
+    runs = [[w] for w in ALL] if argv[:1] == ["all"] and len(argv) == 1 else [argv]
+    todo = []
+    for argv in runs:
+        args = ap.parse_args(argv)
+        args.argv = argv
+        try:
+            check_args(args)
+        except ValueError as e:   # one line, exit 2, before any work (issue 19)
+            ap.error(str(e))
+        todo.append(args)
     from scripts import (
         bench_accuracy,
         bench_ct,
@@ -182,10 +196,13 @@ def main():
         bench_plausibility,
     )
 
-    {"forward": bench_forward.forward, "plan": bench_plan.plan, "stress": bench_forward.stress,
-     "accuracy": bench_accuracy.accuracy, "plausibility": bench_plausibility.plausibility,
-     "ct": bench_ct.ct, "explorer": bench_explorer.explorer,
-     "peers": bench_peers.peers}[args.what](args)
+    run = {"forward": bench_forward.forward, "plan": bench_plan.plan,
+           "stress": bench_forward.stress, "accuracy": bench_accuracy.accuracy,
+           "plausibility": bench_plausibility.plausibility, "ct": bench_ct.ct,
+           "explorer": bench_explorer.explorer, "peers": bench_peers.peers}
+    for args in todo:
+        print(f"== bench.py {' '.join(args.argv)}", flush=True)
+        run[args.what](args)
 
 
 if __name__ == "__main__":

@@ -63,11 +63,11 @@ def _ratios(sim: dict, param: str) -> list:
 
 
 def ct(args) -> None:
-    from scripts._bench import header, table, write_section
+    from scripts._bench import goal, header, plot, table, write_section
 
-    rows, ratio_rows = [], []
+    rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
     for name in args.cts.split(","):
-        ct_path, scene, param, goal, plan_params = CTS[name]
+        ct_path, scene, param, shift, plan_params = CTS[name]
         if not ct_path.exists():
             rows.append([name, "", f"absent: {ct_path}"] + [""] * 10)
             continue
@@ -81,12 +81,17 @@ def ct(args) -> None:
                     rows.append([name, res, rep["error"]] + [""] * 10)
                     continue
                 t = rep["timings_s"]
+                stages[(name, res)] = {k: t[k] for k in ("read", "segment", "mesh",
+                                                         "classify", "landmarks")}
+                if res == "paper":
+                    goals.append(goal(f"CT to a paper-size scene, {name} (ct)", t["total"],
+                                      "s", limit=GOAL_S, source="issue 16"))
                 sim = _run("simulate.py", ["--mesh", rep["mesh"], "--p",
                                            f"{param}={MOVE_MM}"], env)
-                goal_lms = [k for k in goal if k in rep["landmarks"]]
+                goal_lms = [k for k in shift if k in rep["landmarks"]]
                 targets = Path(out) / "targets.json"
                 targets.write_text(json.dumps({k: [a + b for a, b in zip(
-                    rep["landmarks"][k], goal[k])] for k in goal_lms}))
+                    rep["landmarks"][k], shift[k])] for k in goal_lms}))
                 plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
                                         "--landmarks", ",".join(goal_lms), "--params-used",
                                         plan_params], env) if goal_lms else {"error": "none"}
@@ -126,4 +131,15 @@ def ct(args) -> None:
              "face is free, so nothing below holds Ls back.", ""]
     body += table(["CT", "resolution", "treatment", "landmark", "published", "ratio"],
                   ratio_rows)
-    write_section("ct", "\n".join(body))
+
+    def draw(plt):
+        plt.figure(figsize=(6, 3))
+        labels, left = [f"{c} {r}" for c, r in stages], [0.0] * len(stages)
+        for k in ("read", "segment", "mesh", "classify", "landmarks"):
+            w = [st[k] for st in stages.values()]
+            plt.barh(labels, w, left=left, label=k)
+            left = [a + b for a, b in zip(left, w)]
+        plt.xlabel("ct_scene.py s")
+        plt.legend(fontsize=7)
+    body += ["", f"![ct]({plot('ct_stages', draw)})"]
+    write_section("ct", "\n".join(body), goals)

@@ -49,6 +49,7 @@ def measure(resolution: str, ranks: int, events: int, screenshot: Path | None) -
             ms = [set_params(driver, m) for m in _slider_moves(scene["param_names"], events)]
             set_params(driver, {n: v for n, v in zip(scene["param_names"], scene["p0"])})
             out["frame_ms"] = (statistics.median(ms), float(np.percentile(ms, 95)), max(ms))
+            out["frames_ms"] = ms
             p = {k: v + scene["p0"][scene["param_names"].index(k)] for k, v in MOVE.items()}
             t = time.monotonic()
             status, solve = request(url + "api/solve", {"p": p})
@@ -77,9 +78,10 @@ def measure(resolution: str, ranks: int, events: int, screenshot: Path | None) -
 
 
 def explorer(args) -> None:
-    from scripts._bench import header, table, write_section
+    from scripts._bench import goal, header, plot, table, write_section
 
-    rows = []
+    rows, goals, frames = [], [], {}   # frames: (resolution, ranks) -> frame ms
+
     shot = ROOT / args.screenshot if args.screenshot else None
     for res in args.resolutions.split(","):
         for n in (int(r) for r in args.ranks.split(",")):
@@ -87,6 +89,19 @@ def explorer(args) -> None:
                 int(r) for r in args.ranks.split(","))
             m = measure(res, n, args.events, shot if last else None)
             s, c = m["solve"], m["corrected"]
+            frames[(res, n)] = m["frames_ms"]
+            if res == "paper":
+                goals += [goal(f"explorer: slider event to drawn frame, median, {n} "
+                               f"rank{'s' * (n > 1)} (explorer)", m["frame_ms"][0], "ms",
+                               limit=GOALS["frame_ms"], source="issue 17",
+                               note=f"95th percentile {m['frame_ms'][1]:.3g} ms"),
+                          goal(f"explorer: page ready after the server, {n} "
+                               f"rank{'s' * (n > 1)} (explorer)", m["ready_s"], "s",
+                               limit=GOALS["ready_s"], source="issue 17")]
+                if n == GOALS["solve_ranks"]:
+                    goals.append(goal(f"explorer: warm Solve after a {_move()}, {n} ranks "
+                                      "(explorer)", s["seconds"], "s", limit=GOALS["solve_s"],
+                                      source="issue 17"))
             rows.append([res, m["n_skin"], m["n_params"], n, f"{m['start_s']:.1f}",
                          f"**{m['ready_s']:.2f}**",
                          "**{:.1f}** / {:.1f} / {:.1f}".format(*m["frame_ms"]),
@@ -105,7 +120,7 @@ def explorer(args) -> None:
         f"drawn frame over {args.events} slider moves, median / 95th percentile / max (the "
         "prediction x0 + S dp in a typed-array loop, normals, colours, the draw, "
         f"`gl.finish`; goal ≤ {GOALS['frame_ms']:g} ms). After a "
-        f"{list(MOVE.values())[0]:g} mm `{list(MOVE)[0]}` move from p0: `Solve s`, the warm "
+        f"{_move()} from p0: `Solve s`, the warm "
         "true equilibrium as the server timed it (its iterations; goal ≤ "
         f"{GOALS['solve_s']:g} s on {GOALS['solve_ranks']} ranks at paper), and the whole "
         "request; the first-order error max |x_true − (x0 + S dp)|; the corrected "
@@ -118,4 +133,18 @@ def explorer(args) -> None:
         body += ["", f"The last row's page after Solve at that move and a 1 mm maxilla advance "
                  f"(colour: the first-order "
                  f"error map): `{args.screenshot}`, shown in the README."]
-    write_section("explorer", "\n".join(body))
+
+    def draw(plt):
+        plt.figure(figsize=(5, 3.2))
+        for (res, n), ms in frames.items():
+            plt.hist(ms, bins=30, histtype="step", label=f"{res}, {n} rank{'s' * (n > 1)}")
+        plt.axvline(GOALS["frame_ms"], color="k", ls=":", label="goal")
+        plt.xlabel("slider event to drawn frame, ms")
+        plt.ylabel("events")
+        plt.legend(fontsize=8)
+    body += ["", f"![explorer frames]({plot('explorer_frames', draw)})"]
+    write_section("explorer", "\n".join(body), goals)
+
+
+def _move() -> str:
+    return f"{list(MOVE.values())[0]:g} mm `{list(MOVE)[0]}` move"

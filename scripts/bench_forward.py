@@ -7,13 +7,16 @@ from __future__ import annotations
 import itertools
 import sys
 
-from scripts._bench import ROOT, header, simulate, table, write_section
+from scripts._bench import ROOT, goal, header, plot, simulate, table, write_section
+
+#: The forward goal (s): paper size, class3, 5 mm advance from rest, 2 ranks.
+FORWARD_GOAL_S = 5.0
 
 
 def forward(args) -> None:
     """Forward equilibrium across resolutions, presets and rank counts: time, memory,
     iterations. Iterative presets run up to ``--iterative-up-to`` (they take ~100x longer)."""
-    rows = []
+    rows, times = [], {}   # times: (solver, method, ranks) -> [(dofs, s)]
     head = ["resolution", "vertices", "dofs", "ranks", "solver", "method", "its", "KSP its",
             "shifts", "factorisations", "assemble s", "linear solve s", "equilibrium s",
             "peak RSS MiB", "goal err mm"]
@@ -33,6 +36,8 @@ def forward(args) -> None:
                                 + [""] * (len(head) - 7))
                 else:
                     t = r["timings_s"]
+                    times.setdefault((solver, method, n), []).append(
+                        (3 * r["n_vertices"], t["solve"], res))
                     rows.append([res, r["n_vertices"], 3 * r["n_vertices"], n, solver, method,
                                  r["newton_iterations"], r["linear_iterations"],
                                  len(r["diagonal_shifts"]), r["factorisations"],
@@ -50,7 +55,21 @@ def forward(args) -> None:
         "like MUMPS it shifts K until it is positive definite (a failed Cholesky). "
         f"GAMG is run up to `{args.iterative_up_to}`.", "",
         *table(head, rows)]
-    write_section("forward", "\n".join(body))
+
+    def draw(plt):
+        plt.figure(figsize=(6, 4))
+        for (solver, method, n), pts in times.items():
+            plt.loglog([d for d, _, _ in pts], [t for _, t, _ in pts], "o-",
+                       label=f"{solver} {method}, {n} rank{'s' * (n > 1)}")
+        plt.axhline(FORWARD_GOAL_S, color="k", ls=":", label="paper-size goal")
+        plt.xlabel("dofs")
+        plt.ylabel("equilibrium s")
+        plt.legend(fontsize=7)
+    body += ["", f"![forward]({plot('forward', draw)})"]
+    paper = [t for d, t, res in times.get(("direct", "qn", 2), []) if res == "paper"]
+    goals = [goal("forward, rest to a 5 mm advance, paper, 2 ranks (forward)", paper[0], "s",
+                  limit=FORWARD_GOAL_S, source="the paper: 32 s on 6 cores")] if paper else []
+    write_section("forward", "\n".join(body), goals)
 
 
 def stress(args) -> None:
@@ -62,7 +81,7 @@ def stress(args) -> None:
     sys.path.insert(0, str(ROOT))
     from inverse.treatment import PLAN_PARAMS
 
-    rows = []
+    rows, times = [], {}   # resolution -> [(m, s)]
     for case in args.cases.split(","):
         res, mag = case.split(":")
         m = float(mag)
@@ -73,6 +92,7 @@ def stress(args) -> None:
         if "error" in r:
             rows.append([res, f"{m:g}", r["error"][:70]] + [""] * (len(head) - 3))
         else:
+            times.setdefault(res, []).append((m, r["timings_s"]["solve"]))
             rows.append([res, f"{m:g}", r["newton_iterations"], r["factorisations"],
                          len(r["diagonal_shifts"]), r["continuation_steps"],
                          f"{r['min_det_F']:.2f}", f"{r['active_goal_error_max_mm']:.3f}",
@@ -83,4 +103,12 @@ def stress(args) -> None:
         "(`scripts/simulate.py`, `PLAN_PARAMS`, direct preset, quasi-Newton with Newton as "
         f"fallback); a case still running after {args.timeout:g} s is stopped.", "",
         *table(head, rows)]
-    write_section("stress", "\n".join(body))
+
+    def draw(plt):
+        plt.figure(figsize=(5, 3.5))
+        for res, pts in times.items():
+            plt.semilogy([m for m, _ in pts], [t for _, t in pts], "o-", label=res)
+        plt.xlabel("mandible advance m, mm (lateral 0.3 m)")
+        plt.ylabel("equilibrium s")
+        plt.legend()
+    write_section("stress", "\n".join(body + ["", f"![stress]({plot('stress', draw)})"]))

@@ -177,10 +177,11 @@ def peers(args) -> None:
     import os
     import subprocess
 
-    from scripts._bench import header, table, write_section
+    from scripts._bench import goal, header, plot, table, write_section
     from scripts._launch import mpirun
 
     rows = {"forward": [], "gradient": [], "planning": []}
+    speedups, goals = {}, []   # speedups: (peer, ranks) -> [(resolution, ratio)]
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     for res in args.resolutions.split(","):
         for n in (int(r) for r in args.ranks.split(",")):
@@ -209,6 +210,20 @@ def peers(args) -> None:
                                      f"{p['sgn_T']:.3g} / {p['lm_T']:.3g}",
                                      f"{p['p_diff']:.2g}"])
             print(res, n, m, flush=True)
+            for k, ratio in (("tutorial recipe / forward", f["peer_s"] / f["ours_s"]),
+                             ("finite differences / adjoint", g["fd_s"] / g["adjoint_s"]),
+                             ("LM + FD / Sparse Gauss-Newton", p["lm_s"] / p["sgn_s"])):
+                speedups.setdefault((k, n), []).append((res, ratio))
+            if res == "paper" and n == 2:
+                goals = [goal("forward against the FEniCSx tutorial recipe, paper, 2 ranks "
+                              "(peers)", f["ours_s"], "s", peer=f["peer_s"],
+                              note=f"landmarks agree to {f['landmarks_mm']:.1e} mm"),
+                         goal("gradient against finite differences, paper, 2 ranks (peers)",
+                              g["adjoint_s"], "s", peer=g["fd_s"],
+                              note=f"agree to {g['rel_diff']:.1e}"),
+                         goal("plan against LM with FD Jacobians, paper, 2 ranks (peers)",
+                              p["sgn_s"], "s", peer=p["lm_s"],
+                              note=f"T {p['sgn_T']:.3g} / {p['lm_T']:.3g} mm²")]
     body = header("Peers, side by side in one run", args) + [
         "Each row: one process under `mpirun -n ranks` (`scripts/bench_peers.py`), the same "
         "scene, treatment and goal for both. **Forward** (class3, 5 mm mandible advance from "
@@ -232,7 +247,17 @@ def peers(args) -> None:
     body += table(["resolution", "ranks", "Sparse Gauss-Newton s (its, solves)",
                    "LM + FD s (its, solves)", "ratio", "T: SGN / LM", "p differ"],
                   rows["planning"])
-    write_section("peers", "\n".join(body))
+
+    def draw(plt):
+        plt.figure(figsize=(6, 3.5))
+        for (k, n), pts in speedups.items():
+            plt.semilogy([r for r, _ in pts], [x for _, x in pts], "o-",
+                         label=f"{k}, {n} rank{'s' * (n > 1)}")
+        plt.axhline(1, color="k", ls=":")
+        plt.ylabel("peer time / orthodiff time")
+        plt.legend(fontsize=7)
+    body += ["", f"![peers]({plot('peers', draw)})"]
+    write_section("peers", "\n".join(body), goals)
 
 
 if __name__ == "__main__":

@@ -13,11 +13,17 @@ from scripts._bench import (
     CORRECTED,
     ROOT,
     fd_gradient,
-    machine,
+    goal,
+    header,
+    plot,
     prediction_errors,
     simulate,
     write_section,
 )
+
+#: Goals (issue 4): a whole plan at paper size on 2 ranks (s), the adjoint gradient against
+#: one forward solve, and S_T against one forward solve.
+PLAN_GOAL_S, ADJOINT_GOAL, S_T_GOAL = 30.0, 0.3, 1.0
 
 
 def _derivative_costs(res: str, mags) -> dict:
@@ -75,11 +81,9 @@ def _derivative_costs(res: str, mags) -> dict:
 
 
 def plan(args) -> None:
-    lines = ["## Planning (class3-asym, default goal: 7 landmarks, `PLAN_PARAMS`: 10)", "",
-             f"Command: `python3 scripts/bench.py plan --resolutions {args.resolutions} "
-             f"--ranks {args.ranks} --magnitudes {args.magnitudes} --occlusions "
-             f"{args.occlusions}`", "",
-             f"Machine: {machine()}.", "",
+    goals, totals = [], {}   # totals: (occlusion, ranks) -> [(resolution, s)]
+    lines = header("Planning (class3-asym, default goal: 7 landmarks, `PLAN_PARAMS`: 10)",
+                   args) + [
              "### Derivatives at one equilibrium (1 rank, seconds)", "",
              "Forward solves from rest to the plan's typical first move (mandible -4 mm, "
              "yaw -3°, maxilla 1.5 mm), then one adjoint gradient. Plain: the adjoint "
@@ -111,6 +115,13 @@ def plan(args) -> None:
                f"{c['fd_vs_adjoint_rel_diff']:.1e} |")
         print(row, flush=True)
         lines.append(row)
+        if res == "paper":
+            goals += [goal("adjoint gradient / one forward solve, paper, 1 rank (plan)",
+                           c["adjoint_tangent"] / c["forward_tangent"], "", limit=ADJOINT_GOAL,
+                           source="issue 4"),
+                      goal("landmark block S_T / one forward solve, paper, 1 rank (plan)",
+                           c["S_T"] / c["forward_tangent"], "", limit=S_T_GOAL,
+                           source="issue 4")]
         for r in c["predictions"]:
             if "error" in r:
                 pred_lines.append(f"| {res} | | | {r['mag']:g} | failed: {r['error']} |"
@@ -137,10 +148,25 @@ def plan(args) -> None:
                 lines.append(f"| {res} | {occ} | {n} | failed: {r['error'][:60]} | | | | | | | | |")
             else:
                 t = r["timings_s"]
+                totals.setdefault((occ, n), []).append((res, t["total"]))
+                if res == "paper" and n == 2:
+                    goals.append(goal(f"whole plan from p = 0, --occlusion {occ}, paper, "
+                                      "2 ranks (plan)", t["total"], "s", limit=PLAN_GOAL_S,
+                                      source="the paper: ~20 min"))
                 lines.append(
                     f"| {res} | {occ} | {n} | {r['gn_iterations']} | {r['forward_solves']} | "
                     f"{r['mean_distance_before_mm']:.2f} | {r['mean_distance_after_mm']:.2f} | "
                     f"{t['forward']:.1f} | {t['sensitivity']:.1f} | {t['adjoint']:.1f} | "
                     f"{t['line_search']:.1f} | **{t['total']:.1f}** |")
             print(lines[-1], flush=True)
-    write_section("plan", "\n".join(lines))
+
+    def draw(plt):
+        plt.figure(figsize=(5, 3.5))
+        for (occ, n), pts in totals.items():
+            plt.plot([r for r, _ in pts], [t for _, t in pts], "o-",
+                     label=f"--occlusion {occ}, {n} rank{'s' * (n > 1)}")
+        plt.axhline(PLAN_GOAL_S, color="k", ls=":", label="paper-size goal")
+        plt.ylabel("plan.py total s")
+        plt.legend(fontsize=8)
+    lines += ["", f"![plan]({plot('plan', draw)})"]
+    write_section("plan", "\n".join(lines), goals)
