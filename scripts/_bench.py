@@ -137,6 +137,28 @@ def plot(name: str, draw) -> str:
     return f"docs/{name}.png"
 
 
+def series_plot(name: str, series: dict, xlabel: str, ylabel: str, logx: bool = False,
+                logy: bool = True, goal_line: float | None = None) -> str:
+    """Lines of ``series`` ({label: [(x, y)]}) with a dotted goal line at ``goal_line``, saved
+    as ``docs/<name>.png`` (`plot`); returns its path."""
+    def draw(plt):
+        plt.figure(figsize=(6, 3.8))
+        for label, pts in series.items():
+            plt.plot([x for x, _ in pts], [y for _, y in pts], "o-", label=label)
+        plt.xscale("log" if logx else "linear")
+        plt.yscale("log" if logy else "linear")
+        if goal_line is not None:
+            plt.axhline(goal_line, color="k", ls=":", label="goal")
+        plt.xlabel(xlabel)
+        plt.ylabel(ylabel)
+        plt.legend(fontsize=7)
+    return plot(name, draw)
+
+
+def ranks_label(n: int) -> str:
+    return f"{n} rank{'s' * (n > 1)}"
+
+
 def command(args) -> str:
     """The bench.py command line that ran this benchmark (``args.argv``, set by bench.py)."""
     return "python3 scripts/bench.py " + " ".join(getattr(args, "argv", [args.what]))

@@ -41,14 +41,14 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from scripts._bench import ROOT  # noqa: E402
+from scripts._bench import ROOT, SECTIONS  # noqa: E402
 
 #: Most ranks a benchmark may ask for (the machine has 2 cores; more only oversubscribe),
 #: and the largest move (mm) it may ask for: the stress table's largest is 20 mm.
 MAX_RANKS, MAX_MOVE_MM = 64, 100.0
 
 #: ``bench.py all``: every subcommand with its defaults, in BENCHMARKS.md's order.
-ALL = ("forward", "stress", "plan", "peers", "accuracy", "plausibility", "ct", "explorer")
+ALL = tuple(dict.fromkeys(SECTIONS.values()))
 
 
 def check_args(args) -> None:

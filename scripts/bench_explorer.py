@@ -78,7 +78,7 @@ def measure(resolution: str, ranks: int, events: int, screenshot: Path | None) -
 
 
 def explorer(args) -> None:
-    from scripts._bench import goal, header, plot, table, write_section
+    from scripts._bench import goal, header, plot, ranks_label, table, write_section
 
     rows, goals, frames = [], [], {}   # frames: (resolution, ranks) -> frame ms
 
@@ -91,12 +91,12 @@ def explorer(args) -> None:
             s, c = m["solve"], m["corrected"]
             frames[(res, n)] = m["frames_ms"]
             if res == "paper":
-                goals += [goal(f"explorer: slider event to drawn frame, median, {n} "
-                               f"rank{'s' * (n > 1)} (explorer)", m["frame_ms"][0], "ms",
+                goals += [goal(f"explorer: slider event to drawn frame, median, "
+                               f"{ranks_label(n)} (explorer)", m["frame_ms"][0], "ms",
                                limit=GOALS["frame_ms"], source="issue 17",
                                note=f"95th percentile {m['frame_ms'][1]:.3g} ms"),
-                          goal(f"explorer: page ready after the server, {n} "
-                               f"rank{'s' * (n > 1)} (explorer)", m["ready_s"], "s",
+                          goal(f"explorer: page ready after the server, "
+                               f"{ranks_label(n)} (explorer)", m["ready_s"], "s",
                                limit=GOALS["ready_s"], source="issue 17")]
                 if n == GOALS["solve_ranks"]:
                     goals.append(goal(f"explorer: warm Solve after a {_move()}, {n} ranks "
@@ -137,7 +137,7 @@ def explorer(args) -> None:
     def draw(plt):
         plt.figure(figsize=(5, 3.2))
         for (res, n), ms in frames.items():
-            plt.hist(ms, bins=30, histtype="step", label=f"{res}, {n} rank{'s' * (n > 1)}")
+            plt.hist(ms, bins=30, histtype="step", label=f"{res}, {ranks_label(n)}")
         plt.axvline(GOALS["frame_ms"], color="k", ls=":", label="goal")
         plt.xlabel("slider event to drawn frame, ms")
         plt.ylabel("events")

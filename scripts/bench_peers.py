@@ -177,11 +177,11 @@ def peers(args) -> None:
     import os
     import subprocess
 
-    from scripts._bench import goal, header, plot, table, write_section
+    from scripts._bench import goal, header, ranks_label, series_plot, table, write_section
     from scripts._launch import mpirun
 
     rows = {"forward": [], "gradient": [], "planning": []}
-    speedups, goals = {}, []   # speedups: (peer, ranks) -> [(resolution, ratio)]
+    speedups, goals = {}, []   # speedups: label -> [(resolution, peer s / orthodiff s)]
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     for res in args.resolutions.split(","):
         for n in (int(r) for r in args.ranks.split(",")):
@@ -213,7 +213,7 @@ def peers(args) -> None:
             for k, ratio in (("tutorial recipe / forward", f["peer_s"] / f["ours_s"]),
                              ("finite differences / adjoint", g["fd_s"] / g["adjoint_s"]),
                              ("LM + FD / Sparse Gauss-Newton", p["lm_s"] / p["sgn_s"])):
-                speedups.setdefault((k, n), []).append((res, ratio))
+                speedups.setdefault(f"{k}, {ranks_label(n)}", []).append((res, ratio))
             if res == "paper" and n == 2:
                 goals = [goal("forward against the FEniCSx tutorial recipe, paper, 2 ranks "
                               "(peers)", f["ours_s"], "s", peer=f["peer_s"],
@@ -247,16 +247,8 @@ def peers(args) -> None:
     body += table(["resolution", "ranks", "Sparse Gauss-Newton s (its, solves)",
                    "LM + FD s (its, solves)", "ratio", "T: SGN / LM", "p differ"],
                   rows["planning"])
-
-    def draw(plt):
-        plt.figure(figsize=(6, 3.5))
-        for (k, n), pts in speedups.items():
-            plt.semilogy([r for r, _ in pts], [x for _, x in pts], "o-",
-                         label=f"{k}, {n} rank{'s' * (n > 1)}")
-        plt.axhline(1, color="k", ls=":")
-        plt.ylabel("peer time / orthodiff time")
-        plt.legend(fontsize=7)
-    body += ["", f"![peers]({plot('peers', draw)})"]
+    png = series_plot("peers", speedups, "resolution", "peer time / orthodiff time")
+    body += ["", f"![peers]({png})"]
     write_section("peers", "\n".join(body), goals)
 
 

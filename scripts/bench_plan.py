@@ -15,8 +15,9 @@ from scripts._bench import (
     fd_gradient,
     goal,
     header,
-    plot,
     prediction_errors,
+    ranks_label,
+    series_plot,
     simulate,
     write_section,
 )
@@ -81,7 +82,7 @@ def _derivative_costs(res: str, mags) -> dict:
 
 
 def plan(args) -> None:
-    goals, totals = [], {}   # totals: (occlusion, ranks) -> [(resolution, s)]
+    goals, totals = [], {}   # totals: label -> [(resolution, s)]
     lines = header("Planning (class3-asym, default goal: 7 landmarks, `PLAN_PARAMS`: 10)",
                    args) + [
              "### Derivatives at one equilibrium (1 rank, seconds)", "",
@@ -148,7 +149,8 @@ def plan(args) -> None:
                 lines.append(f"| {res} | {occ} | {n} | failed: {r['error'][:60]} | | | | | | | | |")
             else:
                 t = r["timings_s"]
-                totals.setdefault((occ, n), []).append((res, t["total"]))
+                totals.setdefault(f"--occlusion {occ}, {ranks_label(n)}", []).append(
+                    (res, t["total"]))
                 if res == "paper" and n == 2:
                     goals.append(goal(f"whole plan from p = 0, --occlusion {occ}, paper, "
                                       "2 ranks (plan)", t["total"], "s", limit=PLAN_GOAL_S,
@@ -159,14 +161,7 @@ def plan(args) -> None:
                     f"{t['forward']:.1f} | {t['sensitivity']:.1f} | {t['adjoint']:.1f} | "
                     f"{t['line_search']:.1f} | **{t['total']:.1f}** |")
             print(lines[-1], flush=True)
-
-    def draw(plt):
-        plt.figure(figsize=(5, 3.5))
-        for (occ, n), pts in totals.items():
-            plt.plot([r for r, _ in pts], [t for _, t in pts], "o-",
-                     label=f"--occlusion {occ}, {n} rank{'s' * (n > 1)}")
-        plt.axhline(PLAN_GOAL_S, color="k", ls=":", label="paper-size goal")
-        plt.ylabel("plan.py total s")
-        plt.legend(fontsize=8)
-    lines += ["", f"![plan]({plot('plan', draw)})"]
+    png = series_plot("plan", totals, "resolution", "plan.py total s", logy=False,
+                      goal_line=PLAN_GOAL_S)
+    lines += ["", f"![plan]({png})"]
     write_section("plan", "\n".join(lines), goals)
