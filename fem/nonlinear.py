@@ -284,7 +284,7 @@ class NonlinearSolves:
         quasi-Newton fails and ``qn_only``. ``quick``: one stall refresh only."""
         snes = self._method_snes()
         shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
-        refreshes = 0
+        refreshes, f_start = 0, None   # f_start: the residual norm at the start
         while True:
             self._refresh = None
             snes.solve(None, self._x)
@@ -305,9 +305,14 @@ class NonlinearSolves:
                                       f"= {self.min_det_F():.1e})")
             self._refactor = True
             why = self._refresh
+            f_start = self._fnorms[0] if f_start is None else f_start
+            if quick:
+                refresh = refreshes < self.policy.quick_refreshes and \
+                    self._fnorms[-1] <= self.policy.quick_refresh_progress * f_start
+            else:
+                refresh = refreshes < self.policy.qn_refreshes
             if snes is not self._newton_snes and (why == "tangent" or why == "stalled" and
-                                                  refreshes < (self.policy.quick_refreshes if quick
-                                                               else self.policy.qn_refreshes)):
+                                                  refresh):
                 refreshes += why == "stalled"   # K at the current iterate, fresh pairs, go on
                 log.info("qn %s after %d iterations: refactorising there", why, self._last_its)
                 snes = self._method_snes()

@@ -50,7 +50,13 @@ class SolverPolicy:
             10); then K is refactorised at the current iterate and L-BFGS restarts there,
         qn_refreshes: ... up to this many times, before Newton takes over;
         quick_refreshes: ... and this many in a quick solve (a plan's line-search trial,
-            which can be shortened instead).
+            which can be shortened instead),
+        quick_refresh_progress: ... and only where the residual has fallen below this
+            fraction of the quick solve's start: a stall with no progress means the trial is
+            far from any state the kept K describes, and a shorter trial is cheaper than
+            refactorising there (class3-asym paper plan, 2 ranks: a first full step's trial
+            stalled at 0.96 of its start residual, refactorised with shifts and failed
+            anyway after 13 s).
         rate_max: largest linear rate quasi-Newton's stopping test assumes (the error a
             step leaves at rate ρ is ρ/(1-ρ) of it): a factorisation from far away converged
             at ρ ≈ 0.7 and stopped 4.7e-3 mm from the equilibrium without the scaling.
@@ -89,6 +95,7 @@ class SolverPolicy:
     stall_ratio: float = 0.5
     qn_refreshes: int = 3
     quick_refreshes: int = 1
+    quick_refresh_progress: float = 0.1
     rate_max: float = 0.9
     max_halvings: int = 20
     mumps_workspace_retries: int = 4
