@@ -66,7 +66,8 @@ def forward(args) -> None:
         "(1 per Newton step with a direct factorisation); `shifts` counts diagonal "
         "regularisations; peak RSS is summed over ranks. CHOLMOD is sequential in PETSc; "
         "like MUMPS it shifts K until it is positive definite (a failed Cholesky). "
-        f"GAMG is run up to `{args.iterative_up_to}`.", "",
+        + (f"GAMG is run up to `{args.iterative_up_to}`." if "gamg" in args.solvers else
+           "GAMG is left out (`--solvers gamg`; docs/decisions.md)."), "",
         *table(head, rows)]
     png = series_plot("forward", times, "dofs", "equilibrium s", logx=True,
                       goal_line=FORWARD_GOAL_S)
