@@ -9,7 +9,8 @@ Stages, each with the well-kept library for it:
 4. **classify** each boundary facet by the label just outside it: skin (air), bone, crop
    (held: `RIM`) or free (air inside the head, a free crop face: no tag, traction-free); bone
    facets by the osteotomy planes (`meshes.osteotomy`);
-5. **landmarks** on the mid-sagittal profile (`meshes.landmarks`), or from a file.
+5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), or from a
+   file.
 
 The scene file (JSON, mm in the scene's frame: the CT's patient frame with x left, y anterior,
 z superior) holds the osteotomy planes and optionally ``crop`` (``{"min": [x, y, z], "max":
@@ -46,7 +47,7 @@ from meshes.anatomy import (
     tet_quality,
 )
 from meshes.errors import MeshError
-from meshes.landmarks import profile_landmarks
+from meshes.landmarks import skin_landmarks
 from meshes.osteotomy import Osteotomies
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.volume import Volume, read_volume
@@ -288,7 +289,7 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     timings["classify"] = time.perf_counter() - t
     t = time.perf_counter()
     skin = anatomy.facets[anatomy.facet_tags == SKIN]
-    anatomy.landmarks = profile_landmarks(anatomy.points, skin, cuts.midsagittal)
+    anatomy.landmarks = skin_landmarks(anatomy.points, skin, cuts.midsagittal)
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     return anatomy, {"timings_s": timings,

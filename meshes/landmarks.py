@@ -20,8 +20,25 @@ stomion is 0.9 mm deep once voxelised); a flat one is marked at the middle of it
 `PLATEAU_MM` of its extreme. A landmark whose feature the
 scan does not hold (a field of view that ends at the lip) is absent, not guessed: the chains
 of bulges do not cross a gap in the profile longer than `GAP_MM`, and no bulge or hollow is
-taken within `GAP_MM` of the end of the profile or of such a gap. Tragion is not
-built: it needs the ear's cartilage, which this construction does not see.
+taken within `GAP_MM` of the end of the profile or of such a gap.
+
+Tragion (``T_L``, ``T_R``: the notch above the tragus, just in front of the ear canal) is
+built where the ear is in the scan (`tragion_landmarks`). On each side the skin's lateral
+extent e is mapped over the sagittal plane: the outermost skin crossing of lateral rays cast
+from the mid-sagittal plane, every `EAR_BIN_MM` forward and up.
+
+* The ear is where e stands out by more than `PINNA_MM` from e `EAR_FRONT_MM` in front of it
+  (the cheek in front of the ear), in parts of at least `EAR_MIN_MM2`, more than
+  `EAR_BEHIND_MM` behind the front of the face, above the lips (Li, Pg or Me), and not within
+  `GAP_MM` of the skin's top or bottom.
+* The ear canal is the largest pit near it: deeper than the cheek in front of it by
+  `CANAL_MM`, or where a lateral ray crosses no skin between two that do (the canal open to
+  the air).
+* The tragion is the skin crossing one bin in front of the canal, at the canal's middle
+  height: the canal's front rim, the tragus.
+
+Without an ear and its canal (the synthetic heads, a crop in front of the ears) the landmark
+is absent.
 
 Files: ``{name: [x, y, z]}`` (mm, the scene's frame) or a 3D Slicer markups file
 (``.mrk.json``; points in RAS or LPS as its ``coordinateSystem`` says) override the built ones;
@@ -44,6 +61,18 @@ PROMINENCE_MM = 0.5
 GAP_MM = 4.0
 PLATEAU_MM = 0.25
 MENTON_BACK_MM = 20.0
+#: The tragion's construction (module docstring). The pinna stands out from the side of the
+#: head by 15-25 mm (headsq: 7 voxels of 3.2 mm), the cheek in front of it by far less than
+#: PINNA_MM over EAR_FRONT_MM. The tragion lies 95-115 mm behind pronasale in adults (Farkas'
+#: norms); EAR_BEHIND_MM leaves room for a face front cut through the nose (headsq: 90 mm)
+#: and keeps the forehead and cheeks, which narrow forward, out of the search (the synthetic
+#: head's temples, 61-70 mm behind Prn, stand out by 8 mm over EAR_FRONT_MM).
+EAR_BIN_MM = 3.0
+PINNA_MM = 6.0
+EAR_FRONT_MM = 15.0
+EAR_BEHIND_MM = 75.0
+EAR_MIN_MM2 = 60.0
+CANAL_MM = 5.0
 #: RAS or LPS -> orthodiff (x left, y anterior, z superior).
 FROM_FRAME = {"RAS": np.diag([-1.0, 1.0, 1.0]), "LPS": np.diag([1.0, -1.0, 1.0])}
 
@@ -143,6 +172,93 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane) -> dic
         if me is not None:
             out["Me"] = me
     return out
+
+
+def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane) -> dict:
+    """Every landmark the scan holds {name: `Landmark`}: the profile's, and tragion searched
+    above the lowest of Li, Pg and Me that the profile found (module docstring)."""
+    found = profile_landmarks(points, skin, plane)
+    _, _, u = _plane_axes(plane)
+    floor = max(((found[k].position(points) - plane.point) @ u for k in ("Li", "Pg", "Me")
+                 if k in found), default=-np.inf)
+    return {**found, **tragion_landmarks(points, skin, plane, floor)}
+
+
+def tragion_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
+                      t_floor: float = -np.inf) -> dict:
+    """``T_L`` and ``T_R`` {name: `Landmark`} where the ear is on the skin facets ``skin`` (S, 3)
+    over ``points`` (N, 3); ``plane`` is the mid-sagittal plane, its normal pointing to the
+    patient's left or right. Searched above the height ``t_floor`` (mm in the plane, from its
+    point; the lips: below them the neck behind the jaw stands out from the chin as an ear
+    does from the cheek), and not within `GAP_MM` of the skin's top or bottom (a crop face's
+    rim; module docstring)."""
+    from scipy import ndimage
+
+    o, a, u = _plane_axes(plane)
+    n = np.asarray(plane.normal, float) * np.sign(plane.normal[0])   # to the patient's left
+    rel = points - o
+    d, s, t = rel @ n, rel @ a, rel @ u
+    on_skin = np.unique(skin)
+    s_front = s[on_skin].max()
+    s_bins = np.arange(s[on_skin].min() + EAR_BIN_MM / 2, s_front, EAR_BIN_MM)
+    t_bins = np.arange(max(t[on_skin].min() + GAP_MM, t_floor) + EAR_BIN_MM / 2,
+                       t[on_skin].max() - GAP_MM, EAR_BIN_MM)
+    shift = int(round(EAR_FRONT_MM / EAR_BIN_MM))
+    out = {}
+    for name, sign in (("T_L", 1.0), ("T_R", -1.0)):
+        e = np.full((len(s_bins), len(t_bins)), np.nan)   # lateral extent, mm
+        hits = {}
+        for j, t_j in enumerate(t_bins):   # the triangles on this side at this height
+            row = skin[(t[skin].min(axis=1) <= t_j) & (t[skin].max(axis=1) >= t_j) &
+                       ((sign * d[skin]).max(axis=1) > 0)]
+            if len(row) == 0:
+                continue
+            for i, s_i in enumerate(s_bins):
+                hit = intersect_rays(points, row, o + s_i * a + t_j * u, sign * n)
+                if hit is not None:
+                    e[i, j] = abs(hit[1] @ d[row[hit[0]]])
+                    hits[i, j] = (row[hit[0]], hit[1])
+        front = np.full_like(e, np.nan)   # e EAR_FRONT_MM further forward
+        front[:-shift] = e[shift:]
+        with np.errstate(invalid="ignore"):
+            ear = (e - front > PINNA_MM) & (s_bins[:, None] < s_front - EAR_BEHIND_MM)
+        parts, count = ndimage.label(ear)
+        sizes = ndimage.sum(ear, parts, index=np.arange(1, count + 1)) * EAR_BIN_MM ** 2
+        big = np.isin(parts, 1 + np.flatnonzero(sizes >= EAR_MIN_MM2))
+        if not big.any():
+            continue
+        canal = _canal(e, front, big, shift)
+        if canal is None:
+            continue
+        i_s, i_t = canal
+        j = i_t[np.argmin(np.abs(i_t - np.median(i_t)))]   # its middle row
+        i = int(i_s[i_t == j].max()) + 1   # the rim in front of it
+        if (i, int(j)) in hits:
+            facet, weights = hits[i, int(j)]
+            out[name] = Landmark(facet.copy(), weights.copy())
+    return out
+
+
+def _canal(e, front, ear, shift: int):
+    """Bin indices (i_s, i_t) of the ear canal: the largest connected pit, in the box of the
+    ear bins ``ear`` grown by ``shift`` bins forward, deeper than the cheek in front of it
+    (``front``) by `CANAL_MM`, or where the lateral ray misses the skin between two hits in
+    its row (the canal open to the air); None without one."""
+    from scipy import ndimage
+
+    i_s, i_t = np.nonzero(ear)
+    box = np.zeros_like(ear)
+    box[i_s.min():i_s.max() + shift + 1, i_t.min():i_t.max() + 1] = True
+    hit = np.isfinite(e)
+    behind = np.maximum.accumulate(hit, axis=0)   # a hit at or behind, in the row
+    ahead = np.maximum.accumulate(hit[::-1], axis=0)[::-1]
+    with np.errstate(invalid="ignore"):
+        pit = box & ((~hit & behind & ahead) | (e < front - CANAL_MM))
+    parts, count = ndimage.label(pit)
+    if count == 0:
+        return None
+    sizes = ndimage.sum(pit, parts, index=np.arange(1, count + 1))
+    return np.nonzero(parts == 1 + int(np.argmax(sizes)))
 
 
 def _middle(values, run, i: int, sign: float) -> int:

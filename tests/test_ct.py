@@ -112,6 +112,40 @@ def test_ct_of_a_synthetic_head_matches_the_head(synthetic_ct, cache):
         assert d <= 0.3, (k, moved["ct"][k], moved["head"][k])
 
 
+#: The ears added to the 3 mm CT of the synthetic head (mm): a pinna standing 15 mm out of the
+#: side of the head from the crop's back face (y = -12) to EAR_FRONT, with a canal 9 mm square
+#: and 25 mm deep (an adult's: 7-9 mm across, 25 mm to the eardrum) centred at CANAL_Z, its
+#: front wall at y = 0, away from the ear's middle height (z = 10) and front edge (y = 12);
+#: the tragion is at the canal's front rim.
+EAR_FRONT, CANAL_Z = 12.0, 0.0
+
+
+def _ears(a, v):
+    x, y, z = np.meshgrid(*(v.centres(i) for i in range(3)), indexing="ij")
+    pinna = (np.abs(x) > 60) & (np.abs(x) < 88) & (y <= EAR_FRONT) & (z > -15) & (z < 35)
+    a[pinna] = 40
+    a[(np.abs(x) > 63) & (y > -9) & (y < 0) & (np.abs(z - CANAL_Z) < 4.5)] = -1000   # canal
+
+
+def test_tragion_at_the_front_rim_of_the_ear_canal(tmp_path):
+    """Tragion is built in front of each ear canal, at its height, on the pinna's skin; a head
+    without ears (the synthetic one) has none."""
+    from meshes.ct import build  # not cached: the plain CT is another test's fresh one
+    from meshes.landmarks import EAR_BIN_MM
+
+    voxel = 3.0
+    got, _ = build(_small_ct(tmp_path, _ears, "ears.mha"), _scene_file(tmp_path))
+    t = got.landmark_positions()
+    assert {"T_L", "T_R"} <= set(t), sorted(t)
+    for name, side in (("T_L", 1.0), ("T_R", -1.0)):
+        x, y, z = t[name]
+        assert side * x > 80, (name, t[name])   # on the pinna, not the head behind it
+        assert -voxel / 2 <= y <= EAR_BIN_MM + voxel, (name, t[name])   # canal: y < 0
+        assert abs(z - CANAL_Z) <= EAR_BIN_MM / 2 + voxel, (name, t[name])
+    plain, _ = build(_small_ct(tmp_path), _scene_file(tmp_path))
+    assert not {"T_L", "T_R"} & set(plain.landmarks)
+
+
 def test_ct_scene_is_deterministic_and_cached(tmp_path, cache):
     """Two builds of one CT give the same arrays bit for bit (CGAL's seed is fixed); the
     second `ct_anatomy` call comes from the cache, the same again."""
@@ -241,6 +275,7 @@ def test_cranium_lefort_scene_through_the_scripts(tmp_path, cache):
     assert REPORT_KEYS <= set(rep)
     assert set(rep["segments"]) == {"maxilla_L", "maxilla_R"}
     assert {"Prn", "Sn"} <= set(rep["landmarks"])
+    assert not {"T_L", "T_R"} & set(rep["landmarks"])   # the crop ends in front of the ears
     assert rep["min_quality"] > 0.05 and Path(rep["mesh"]).exists()
     sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "maxilla.advance_mm=5"])
     assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
@@ -253,12 +288,17 @@ def test_headsq_double_jaw_scene_through_the_scripts(tmp_path, cache):
     """headsq (shared data): ct_scene.py, a 5 mm advance of both jaws (the CT's teeth are in
     occlusion: an independent 5 mm BSSO advance drives the lower incisors through the upper
     ones and crushes the tissue between them) converges, and a plan of both jaws (targets from
-    simulate.py) recovers p*; a landmark the CT does not hold is refused with one line."""
+    simulate.py) recovers p*; a landmark the CT does not hold is refused with one line; the
+    tragions sit on the two sides at one height."""
     r, out = _ct_scene(tmp_path, HEADSQ, EXAMPLES / "headsq.json")
     assert r.returncode == 0, r.stderr[-2000:]
     rep = json.loads((out / "ct.json").read_text())
     assert set(rep["segments"]) == {"mandible", "maxilla_L", "maxilla_R"}
-    assert {"Li", "Pg", "Me"} <= set(rep["landmarks"])
+    assert {"Li", "Pg", "Me", "T_L", "T_R"} <= set(rep["landmarks"])
+    t_l, t_r = (np.array(rep["landmarks"][k]) for k in ("T_L", "T_R"))
+    mid = json.loads((EXAMPLES / "headsq.json").read_text())["midsagittal"]["point"][0]
+    assert t_l[0] - mid > 50 and mid - t_r[0] > 50   # on the two sides of the head,
+    assert np.abs(t_l[1:] - t_r[1:]).max() < 2 * 3.2   # level and abreast within 2 voxels
     sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "jaws.advance_mm=5"])
     assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
     _plan_recovers(tmp_path, rep["mesh"], {"jaws.advance_mm": 3.0, "jaws.pitch_deg": 2.0},
