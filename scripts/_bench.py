@@ -139,14 +139,21 @@ def plot(name: str, draw) -> str:
 
 def series_plot(name: str, series: dict, xlabel: str, ylabel: str, logx: bool = False,
                 logy: bool = True, goal_line: float | None = None) -> str:
-    """Lines of ``series`` ({label: [(x, y)]}) with a dotted goal line at ``goal_line``, saved
-    as ``docs/<name>.png`` (`plot`); returns its path."""
+    """Lines of ``series`` ({label: [(x, y)]}; x numbers, or names such as resolutions, drawn
+    in their first order) with a dotted goal line at ``goal_line``, saved as
+    ``docs/<name>.png`` (`plot`); returns its path."""
+    names = list(dict.fromkeys(x for pts in series.values() for x, _ in pts
+                               if isinstance(x, str)))
+
     def draw(plt):
         plt.figure(figsize=(6, 3.8))
-        for label, pts in series.items():
-            plt.plot([x for x, _ in pts], [y for _, y in pts], "o-", label=label)
-        plt.xscale("log" if logx else "linear")
+        plt.xscale("log" if logx and not names else "linear")
         plt.yscale("log" if logy else "linear")
+        for label, pts in series.items():
+            plt.plot([names.index(x) if names else x for x, _ in pts], [y for _, y in pts],
+                     "o-", label=label)
+        if names:   # after the scales: setting one resets the ticks
+            plt.xticks(range(len(names)), names)
         if goal_line is not None:
             plt.axhline(goal_line, color="k", ls=":", label="goal")
         plt.xlabel(xlabel)
