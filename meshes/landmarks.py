@@ -192,8 +192,6 @@ def tragion_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     point; the lips: below them the neck behind the jaw stands out from the chin as an ear
     does from the cheek), and not within `GAP_MM` of the skin's top or bottom (a crop face's
     rim; module docstring)."""
-    from scipy import ndimage
-
     o, a, u = _plane_axes(plane)
     n = np.asarray(plane.normal, float) * np.sign(plane.normal[0])   # to the patient's left
     rel = points - o
@@ -222,9 +220,8 @@ def tragion_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
         front[:-shift] = e[shift:]
         with np.errstate(invalid="ignore"):
             ear = (e - front > PINNA_MM) & (s_bins[:, None] < s_front - EAR_BEHIND_MM)
-        parts, count = ndimage.label(ear)
-        sizes = ndimage.sum(ear, parts, index=np.arange(1, count + 1)) * EAR_BIN_MM ** 2
-        big = np.isin(parts, 1 + np.flatnonzero(sizes >= EAR_MIN_MM2))
+        parts, sizes = _components(ear)
+        big = np.isin(parts, 1 + np.flatnonzero(sizes * EAR_BIN_MM ** 2 >= EAR_MIN_MM2))
         if not big.any():
             continue
         canal = _canal(e, front, big, shift)
@@ -244,8 +241,6 @@ def _canal(e, front, ear, shift: int):
     ear bins ``ear`` grown by ``shift`` bins forward, deeper than the cheek in front of it
     (``front``) by `CANAL_MM`, or where the lateral ray misses the skin between two hits in
     its row (the canal open to the air); None without one."""
-    from scipy import ndimage
-
     i_s, i_t = np.nonzero(ear)
     box = np.zeros_like(ear)
     box[i_s.min():i_s.max() + shift + 1, i_t.min():i_t.max() + 1] = True
@@ -254,11 +249,17 @@ def _canal(e, front, ear, shift: int):
     ahead = np.maximum.accumulate(hit[::-1], axis=0)[::-1]
     with np.errstate(invalid="ignore"):
         pit = box & ((~hit & behind & ahead) | (e < front - CANAL_MM))
-    parts, count = ndimage.label(pit)
-    if count == 0:
-        return None
-    sizes = ndimage.sum(pit, parts, index=np.arange(1, count + 1))
-    return np.nonzero(parts == 1 + int(np.argmax(sizes)))
+    parts, sizes = _components(pit)
+    return np.nonzero(parts == 1 + int(np.argmax(sizes))) if len(sizes) else None
+
+
+def _components(mask):
+    """The connected parts of a boolean grid: labels (same shape, 0 outside, part k is k) and
+    each part's size in cells (K,)."""
+    from scipy import ndimage
+
+    parts, count = ndimage.label(mask)
+    return parts, ndimage.sum(mask, parts, index=np.arange(1, count + 1))
 
 
 def _middle(values, run, i: int, sign: float) -> int:

@@ -62,13 +62,9 @@ def plausibility(args) -> None:
         "ratio is the soft-tissue landmark's forward motion over the bone's 5 mm (the "
         "nasal tip's elevation on the last row). ✗: outside the published range.", "",
         f"Generator version {GENERATOR_VERSION}: the LeFort I cut runs below the piriform rim "
-        f"(z = {Z_LEFORT:g} mm), so the nose sits on bone that does not move. Version 2 cut "
-        "through the nasal base (z = -6 mm): a 5 mm LeFort I advance brought the nasal tip "
-        "0.42 of it forward and 0.69 up (class1 coarse), against 0.13–0.33 and little "
-        "elevation published. The change left the solver's work alone: at paper size on 2 "
-        "ranks, in one run, the forward (class3, 5 mm advance) took 15 iterations in both "
-        "and the free class3-asym plan 4 Gauss-Newton iterations in both (24.2–25.9 s against "
-        "25.7–26.6 s; mean distance 1.02 → 0.97 mm); docs/decisions.md.", ""]
+        f"(z = {Z_LEFORT:g} mm), so the nose sits on bone that does not move. What the cut "
+        "through the nasal base (version 2) gave, and what the change did to the forward "
+        "solve and the plan: docs/decisions.md, with its command.", ""]
     body += table(head + cols, [
         [p.split(".")[0] + (" advance"), lm + (" up" if axis == 2 else " fwd"),
          "—" if rng is None else f"{rng[0]:g}–{rng[1]:g}", src, *rows[i]]
