@@ -35,7 +35,8 @@ class Domain:
         (n_local_nodes, 2) the vertex pair naming each dof block (module docstring).
         input_index: (n_local_nodes,) original vertex index of each dof block, -1 on edges.
         node_of_block: (n_local_nodes,) geometry node of each dof block, -1 on edges.
-        segments, pivots, landmarks, name, n_vertices, n_cells, occlusion: as in `Anatomy`.
+        segments, pivots, landmarks, name, n_vertices, n_cells, occlusion, head_frame: as in
+        `Anatomy`.
     """
 
     mesh: object
@@ -51,6 +52,7 @@ class Domain:
     n_vertices: int
     n_cells: int
     occlusion: np.ndarray | None = None
+    head_frame: np.ndarray | None = None
 
     @property
     def degree(self) -> int:
@@ -211,7 +213,7 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
             meta = dict(segments=anatomy.segments, pivots=anatomy.pivots,
                         landmarks=anatomy.landmarks, name=anatomy.name,
                         n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells,
-                        occlusion=anatomy.occlusion)
+                        occlusion=anatomy.occlusion, head_frame=anatomy.head_frame)
             cells, x = anatomy.cells, anatomy.points
             facets, values = anatomy.facets, anatomy.facet_tags
         except Exception as e:  # re-raised on every rank below

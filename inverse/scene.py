@@ -66,6 +66,8 @@ class Scene:
             raise InputError(f"occlusion must be 'free', 'final' or a 4x4, got {occlusion!r}")
         if not isinstance(occlusion, str):
             treatment = treatment.with_occlusion(occlusion)
+        if self.domain.head_frame is not None:   # the motions' axes are the head's
+            treatment = treatment.in_frame(self.domain.head_frame.matrix)
         self.treatment = treatment.subset(params_used) if params_used else treatment
         t0 = time.perf_counter()
         self.eq = Equilibrium(self.domain, self.treatment.goal_map(self.domain),
@@ -116,10 +118,19 @@ class Scene:
         p = self.params if p is None else self.param_vector(p)
         return self.treatment.transforms(p, self.domain.pivots)
 
+    @property
+    def head_frame(self):
+        """The anatomy's `meshes.frame.HeadFrame` (the identity where it has none)."""
+        from meshes.frame import HeadFrame
+
+        return self.domain.head_frame or HeadFrame.identity()
+
     def motion_report(self) -> dict:
         """Report keys of the current equilibrium's bone motions: ``transforms`` {segment:
-        4×4} and ``occlusion`` (4×4, or None when the jaws are free)."""
-        return {"transforms": self.transforms(), "occlusion": self.treatment.occlusion}
+        4×4} and ``occlusion`` (4×4, or None when the jaws are free), both in the scene's
+        frame, and the head frame they were built in (`meshes.frame.HeadFrame.report`)."""
+        return {"transforms": self.transforms(), "occlusion": self.treatment.occlusion,
+                **self.head_frame.report()}
 
     def params_from_transforms(self, transforms: dict) -> np.ndarray:
         """The parameters (Np,) that move the segments by ``transforms`` ({segment: 4×4};
@@ -180,7 +191,7 @@ class Scene:
         """The case's built-in treatment goal ``{name: [x, y, z]}`` (see `inverse.targets`)."""
         from inverse.targets import default_targets
 
-        return default_targets(self.case, self.landmarks(rest=True))
+        return default_targets(self.case, self.landmarks(rest=True), self.domain.head_frame)
 
     def plan(self, targets=None, landmarks=None, weights=None, tikhonov: float | None = None,
              p0=None, **options):

@@ -113,7 +113,8 @@ class Session:
     def payload(self) -> dict:
         """The scene as the page needs it (GET /api/scene): parameters, skin triangles,
         skin at rest and at p0 (N, 3) mm, landmarks at p0 and their sensitivities
-        (L, 3, Np) mm per unit, targets."""
+        (L, 3, Np) mm per unit, targets, and the head's axes (``head_axes``: left, anterior,
+        superior, scene frame) for the page's Front and Profile views."""
         scene, pred = self.scene, self.pred
         tr = scene.treatment
         return {"param_names": tr.names, "units": [q.unit for q in tr.params],
@@ -123,7 +124,8 @@ class Session:
                 "vertices": pred.x0.tolist(), "vertices_rest": pred.x_rest.tolist(),
                 "landmarks": {n: x.tolist() for n, x in zip(pred.landmark_names, pred.lm0)},
                 "landmark_sensitivity": pred.lm_S.tolist(),
-                "targets": self.targets}
+                "targets": self.targets,
+                "head_axes": scene.head_frame.rotation.T.tolist()}
 
     def sensitivity_bytes(self) -> bytes:
         """S_skin (N, 3, Np) as little-endian float32 in C order (GET /api/sensitivity)."""

@@ -1,6 +1,9 @@
 """Clinical construction rules: landmark targets from a face's rest geometry (mm).
 
-Axes: +x patient's left, +y anterior, +z superior. Each rule returns ``{name: (3,)}``.
+Axes: the head frame's (`meshes.frame`): +x patient's left, +y anterior, +z superior, with
+the Frankfort horizontal and the mid-sagittal plane as the reference planes, where every
+cephalometric norm and the true vertical are defined. Each rule takes and returns head-frame
+points ``{name: (3,)}``; `default_targets` maps a scene's points in and out.
 
 * `true_vertical_line` - Arnett's soft-tissue cephalometric analysis (Arnett et al., Am J
   Orthod Dentofacial Orthop 1999;116:239-253): with the head in natural position, the true
@@ -100,12 +103,17 @@ DEFAULT_GOALS = {
 }
 
 
-def default_targets(case: str, rest: dict) -> dict:
-    """The built-in treatment goal of a case, ``{name: [x, y, z]}`` from rest landmarks."""
+def default_targets(case: str, rest: dict, frame=None) -> dict:
+    """The built-in treatment goal of a case, ``{name: [x, y, z]}`` mm in the scene's frame,
+    from rest landmarks in it; the rules apply in the head frame ``frame``
+    (`meshes.frame.HeadFrame`; None: the scene's frame is the head's)."""
     if case not in DEFAULT_GOALS:
         raise InputError(f"no default goal for {case!r}; give targets explicitly "
                          f"(cases with a default: {sorted(DEFAULT_GOALS)})")
     missing = [n for n in ("N", "Sn", "Pg", "Prn") if n not in rest]
     if missing:
         raise InputError(f"the default goal needs landmarks {missing}")
-    return {n: np.asarray(x).tolist() for n, x in DEFAULT_GOALS[case](rest).items()}
+    if frame is None:
+        return {n: np.asarray(x).tolist() for n, x in DEFAULT_GOALS[case](rest).items()}
+    head = {n: frame.to_head(x) for n, x in rest.items()}
+    return {n: frame.to_scene(x).tolist() for n, x in DEFAULT_GOALS[case](head).items()}

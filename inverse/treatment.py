@@ -5,8 +5,11 @@ rigidly about its pivot c::
 
     x̂ = R (X - c) + c + t,    R = Rz(yaw) · Ry(roll) · Rx(pitch)   (pitch applied first)
 
-about the scene's axes (x patient's left, y anterior, z superior), right-handed, in degrees;
-t in mm. For a segment or group ``s``:
+about the head's axes (x patient's left, y anterior, z superior: `meshes.frame`; the scene's
+axes where the anatomy has no head frame), right-handed, in degrees; t in mm. The motions
+are built in the head frame and returned in the scene's: ``T = H T_head H⁻¹`` with H the
+head frame (head -> scene), so that an advance is along the face's anterior axis however the
+head lay in the scanner. For a segment or group ``s``:
 
 ================  =====  ==============================  ================
 name              unit   motion                          default bounds
@@ -112,13 +115,14 @@ class Param:
     bounds: tuple = (-np.inf, np.inf)
     field: object = None
 
-    def values(self, X: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    def values(self, X: np.ndarray, pivot: np.ndarray, axes=None) -> np.ndarray:
         """Linear blendshape (K, 3), mm per unit, at rest positions X (K, 3) of its
-        segments' vertices (linear and sculpted kinds)."""
+        segments' vertices (linear and sculpted kinds); ``axes`` (3, 3): the head's axes as
+        columns (default the scene's)."""
         if self.kind == "sculpted":
             return np.asarray(self.field(X), dtype=float)
         kind, axis = MOTIONS[self.motion][:2]
-        a = np.eye(3)[axis]
+        a = (np.eye(3) if axes is None else np.asarray(axes))[:, axis]
         if kind == "translation":
             return np.tile(a, (len(X), 1))
         return np.deg2rad(1.0) * np.cross(a, X - pivot)
@@ -154,12 +158,14 @@ def _motion_matrix(q: np.ndarray, c: np.ndarray):
 
 
 class Treatment:
-    """An ordered list of parameters, and an optional occlusion (4×4, see module docstring).
+    """An ordered list of parameters, an optional occlusion (4×4, scene frame) and the head
+    frame (4×4, head -> scene; None: the identity) its motions are built in (module
+    docstring).
 
     Pivots (``{segment: (3,)}`` mm) come from the anatomy, so methods that place motions
     take them as an argument."""
 
-    def __init__(self, params: list[Param], occlusion=None):
+    def __init__(self, params: list[Param], occlusion=None, frame=None):
         names = [p.name for p in params]
         if len(set(names)) != len(names):
             raise InputError(f"duplicate parameter names in {names}")
@@ -167,6 +173,7 @@ class Treatment:
             raise InputError("a treatment needs at least one parameter")
         self.params = list(params)
         self.occlusion = None if occlusion is None else rigid(occlusion, "the occlusion")
+        self.frame = None if frame is None else rigid(frame, "the head frame")
         if self.occlusion is not None and any(p.kind == "linear" for p in self.params):
             raise InputError("an occlusion holds the mandible by an exact rigid motion: use "
                              "the exact rigid parameters, not the linearised ones")
@@ -191,11 +198,21 @@ class Treatment:
         unknown = [n for n in names if n not in lookup]
         if unknown:
             raise InputError(f"unknown parameter(s) {unknown}; known: {self.names}")
-        return Treatment([lookup[n] for n in names], self.occlusion)
+        return Treatment([lookup[n] for n in names], self.occlusion, self.frame)
 
     def with_occlusion(self, occlusion) -> "Treatment":
         """The same parameters with the mandible held in ``occlusion`` (4×4) to the maxilla."""
-        return Treatment(self.params, occlusion)
+        return Treatment(self.params, occlusion, self.frame)
+
+    def in_frame(self, frame) -> "Treatment":
+        """The same treatment with its motions built in the head frame ``frame`` (4×4, head
+        -> scene; None: the scene's axes)."""
+        return Treatment(self.params, self.occlusion, frame)
+
+    @property
+    def axes(self) -> np.ndarray:
+        """(3, 3): the head's left, anterior and superior axes (columns), scene frame."""
+        return np.eye(3) if self.frame is None else self.frame[:3, :3]
 
     def vector(self, values: dict) -> np.ndarray:
         """Parameter vector (Np,) from ``{name: value}``; missing names are 0. A value is a
@@ -229,16 +246,16 @@ class Treatment:
                 out[group] = np.mean(kids, axis=0)
         return out
 
-    def _chain(self, segment: str, nodes: dict) -> list:
+    def _chain(self, segment: str, nodes: dict, occlusion) -> list:
         """The factors of a segment's motion, outermost first: node names, or the occlusion
         (a 4×4) where the mandible hangs from the maxilla."""
         chain, node = [segment], segment
         while node in PARENTS:
-            if node == "mandible" and self.occlusion is not None:
+            if node == "mandible" and occlusion is not None:
                 if "maxilla" not in nodes:
                     raise InputError("an occlusion holds the mandible to the maxilla, but the "
                                      "anatomy has no maxilla segment")
-                chain.append(self.occlusion)
+                chain.append(occlusion)
                 node = "maxilla"
             else:
                 node = PARENTS[node]
@@ -250,7 +267,11 @@ class Treatment:
         ``derivatives`` also ``{segment: (Np, 4, 4)}``, dT/dp_i per unit (0 for linear and
         sculpted parameters)."""
         p = np.asarray(p, dtype=float)
-        nodes = self.node_pivots(pivots)
+        H = np.eye(4) if self.frame is None else self.frame
+        H_inv = np.linalg.inv(H)
+        nodes = self.node_pivots({s: H_inv[:3, :3] @ c + H_inv[:3, 3]
+                                  for s, c in pivots.items()})   # in the head frame
+        occlusion = None if self.occlusion is None else H_inv @ self.occlusion @ H
         own = {}   # node -> [(motion index, parameter index)]
         for i, par in enumerate(self.params):
             if par.kind == "rigid":
@@ -266,7 +287,7 @@ class Treatment:
             mats[node] = _motion_matrix(q, nodes[node])
         T_all, dT_all = {}, {}
         for seg in pivots:
-            chain = self._chain(seg, nodes)
+            chain = self._chain(seg, nodes, occlusion)
             factors = [f if not isinstance(f, str) else mats[f][0] if f in mats else np.eye(4)
                        for f in chain]
             T_all[seg] = functools.reduce(np.matmul, factors, np.eye(4))
@@ -279,7 +300,8 @@ class Treatment:
                         for m, i in own[f]:
                             dT[i] = left @ mats[f][1][m] @ right
                     left = left @ factors[j]
-                dT_all[seg] = dT
+                dT_all[seg] = H @ dT @ H_inv
+            T_all[seg] = H @ T_all[seg] @ H_inv   # back to the scene's frame
         return (T_all, dT_all) if derivatives else T_all
 
     def params_from_transforms(self, transforms: dict, pivots: dict) -> np.ndarray:
@@ -344,7 +366,7 @@ class GoalMap:
                                  f"(segments: {list(domain.segments)})")
             blocks = domain.facet_blocks([domain.segments[m] for m in members
                                           if m in domain.segments])
-            B[blocks, :, i] = par.values(domain.X[blocks], nodes[par.segment])
+            B[blocks, :, i] = par.values(domain.X[blocks], nodes[par.segment], treatment.axes)
         self._B = B.reshape(n * 3, -1)
         if not self.linear:
             treatment.transforms(np.zeros(self.n_params), self.pivots)   # validates segments

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from meshes.errors import MeshError
+from meshes.frame import HeadFrame
 
 #: Facet tag values of the boundary roles. Segment tags are ``SEGMENT_TAG0 + i``.
 SKIN, FIXED, FREE_BONE, RIM = 1, 2, 3, 4
@@ -60,6 +61,8 @@ class Anatomy:
         name: case name or source file, for reports.
         occlusion: optional (4, 4) motion of the mandible relative to the maxilla that
             brings the teeth into the final occlusion (`inverse.treatment`), scene frame.
+        head_frame: optional `meshes.frame.HeadFrame` (head frame -> scene frame); None:
+            the scene's frame is the head's (the synthetic heads).
     """
 
     points: np.ndarray
@@ -71,6 +74,7 @@ class Anatomy:
     landmarks: dict[str, Landmark]
     name: str = "anatomy"
     occlusion: np.ndarray | None = None
+    head_frame: HeadFrame | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -182,6 +186,7 @@ class Anatomy:
         meta = {"segments": self.segments, "name": self.name,
                 "occlusion": None if self.occlusion is None else
                 np.asarray(self.occlusion).tolist(),
+                "head_frame": None if self.head_frame is None else self.head_frame.report(),
                 "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
                 "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
                               for k, v in self.landmarks.items()}}
@@ -206,7 +211,8 @@ class Anatomy:
                                       for k, (f, w) in meta["landmarks"].items()},
                            name=meta["name"],
                            occlusion=None if meta.get("occlusion") is None else
-                           np.array(meta["occlusion"], dtype=float))
+                           np.array(meta["occlusion"], dtype=float),
+                           head_frame=HeadFrame.from_report(meta.get("head_frame")))
         except (OSError, KeyError, ValueError) as e:
             raise MeshError(f"cannot read anatomy file {path}: {e}") from e
 

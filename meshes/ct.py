@@ -9,12 +9,14 @@ Stages, each with the well-kept library for it:
 4. **classify** each boundary facet by the label just outside it: skin (air), bone, crop
    (held: `RIM`) or free (air inside the head, a free crop face: no tag, traction-free); bone
    facets by the osteotomy planes (`meshes.osteotomy`);
-5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), or from a
-   file.
+5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), built in
+   the head frame (`meshes.frame`: given by the scene file's ``frame``, or estimated on the
+   whole CT before the crop), or from a file.
 
 The scene file (JSON, mm in the scene's frame: the CT's patient frame with x left, y anterior,
-z superior) holds the osteotomy planes and optionally ``crop`` (``{"min": [x, y, z], "max":
-[x, y, z], "free": ["-z"]}``; default: the whole field of view, every face held),
+z superior) holds the osteotomy planes and optionally ``frame`` (`meshes.frame`), ``crop``
+(``{"min": [x, y, z], "max": [x, y, z], "free": ["-z"]}``; default: the whole field of view,
+every face held),
 ``skin_hu``, ``bone_hu``, ``labels`` (a label map's values, ``{"tissue": 1, "bone": 2}``) and
 ``occlusion`` (4×4 or a .tfm, the final occlusion). The result is deterministic (CGAL's seed is
 fixed) and cached under `meshes.synthetic.cache_dir` by the input's content, the options and
@@ -47,8 +49,10 @@ from meshes.anatomy import (
     tet_quality,
 )
 from meshes.errors import MeshError
+from meshes.frame import estimate as estimate_frame
+from meshes.frame import from_spec
 from meshes.landmarks import skin_landmarks
-from meshes.osteotomy import Osteotomies
+from meshes.osteotomy import Osteotomies, Plane
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.volume import Volume, read_volume
 
@@ -63,6 +67,8 @@ log = logging.getLogger(__name__)
 #: run differed); without it the mesh is the same bit for bit, and the worst tet quality falls
 #: from 0.17-0.21 to 0.06-0.075 (Cranium, synthetic CT), far above `SLIVER_QUALITY`.
 CGAL_SIZING = {"cell": 1.3, "facet_distance": 0.3, "radius_edge": 3.0}
+#: The mid-sagittal plane in the head frame's own coordinates (`meshes.frame`).
+HEAD_MIDSAGITTAL = Plane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
 #: Sampling distances outside a facet, in voxels along its normal, to read the label there.
 SAMPLE_VOXELS = (0.75, 1.5, 2.25)
 #: A facet within this many voxels of a crop face's label boundary, facing out of it, is on
@@ -107,10 +113,10 @@ def _digest(path: Path) -> str:
 def _code_digest() -> str:
     """The pipeline's own source: a cached scene is rebuilt when the code that made it
     changes (the synthetic heads bump `GENERATOR_VERSION` by hand; here no hand is needed)."""
-    from meshes import anatomy, landmarks, osteotomy, segment, volume
+    from meshes import anatomy, frame, landmarks, osteotomy, segment, volume
 
     h = hashlib.sha1()
-    for module in (anatomy, landmarks, osteotomy, segment, volume):
+    for module in (anatomy, frame, landmarks, osteotomy, segment, volume):
         h.update(Path(module.__file__).read_bytes())
     h.update(Path(__file__).read_bytes())
     return h.hexdigest()
@@ -125,6 +131,15 @@ def read_scene_file(path) -> dict:
     if not isinstance(spec, dict):
         raise MeshError(f"{path}: expected a JSON object")
     return spec
+
+
+def parse_scene_file(path):
+    """(spec, `Osteotomies`, `meshes.frame.HeadFrame` or None) of a scene file, checked
+    whole: `MeshError` with one line for a bad plane or frame."""
+    spec = read_scene_file(path)
+    cuts = Osteotomies.from_dict(spec, str(path))
+    frame = None if spec.get("frame") is None else from_spec(spec["frame"], path)
+    return spec, cuts, frame
 
 
 def _crop_box(spec, volume: Volume):
@@ -234,20 +249,29 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     per stage and ``min_quality``. No cache: see `ct_anatomy`."""
     if resolution not in RESOLUTIONS:
         raise MeshError(f"unknown resolution {resolution!r}; choose one of {list(RESOLUTIONS)}")
-    spec = read_scene_file(scene_file)
-    cuts = Osteotomies.from_dict(spec, str(scene_file))
+    spec, cuts, frame = parse_scene_file(scene_file)
     timings = {}
     t = time.perf_counter()
     volume = read_volume(ct_path)
     timings["read"] = time.perf_counter() - t
+
+    is_map = labelmap or spec.get("labels") is not None
+    bone_hu = None if is_map else float(spec.get("bone_hu", seg.BONE_HU))
+
+    def masks(v):
+        if is_map:
+            return seg.labels_from_map(v, spec.get("labels"))
+        return seg.labels_from_ct(v, float(spec.get("skin_hu", seg.SKIN_HU)), bone_hu)
+
+    if frame is None:   # on the whole CT, before the crop
+        t = time.perf_counter()
+        frame = estimate_frame(volume, masks(volume)[1], bone_hu)
+        timings["frame"] = time.perf_counter() - t
+    cuts = cuts.with_midsagittal(Plane(tuple(frame.origin), tuple(frame.rotation[:, 0])))
     t = time.perf_counter()
     lo, hi, free = _crop_box(spec, volume)
     volume = volume.crop(lo, hi)
-    if labelmap or spec.get("labels") is not None:
-        body, bone = seg.labels_from_map(volume, spec.get("labels"))
-    else:
-        body, bone = seg.labels_from_ct(volume, float(spec.get("skin_hu", seg.SKIN_HU)),
-                                        float(spec.get("bone_hu", seg.BONE_HU)))
+    body, bone = masks(volume)
     labels = seg.label_volume(volume, body, bone, free)
     timings["segment"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -284,17 +308,17 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
         raise MeshError("no fixed bone is left: the cuts free all bone; the skull must hold")
     keep = tags != 0
     anatomy = Anatomy(points, cells, facets[keep], tags[keep], segments, {}, {},
-                      name=f"{Path(ct_path).name}/{resolution}")
+                      name=f"{Path(ct_path).name}/{resolution}", head_frame=frame)
     anatomy.validate()
     timings["classify"] = time.perf_counter() - t
     t = time.perf_counter()
     skin = anatomy.facets[anatomy.facet_tags == SKIN]
-    anatomy.landmarks = skin_landmarks(anatomy.points, skin, cuts.midsagittal)
+    anatomy.landmarks = skin_landmarks(frame.to_head(anatomy.points), skin, HEAD_MIDSAGITTAL)
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     return anatomy, {"timings_s": timings,
                      "min_quality": float(tet_quality(anatomy.points, anatomy.cells).min()),
-                     "voxel_mm": volume.spacing.tolist()}
+                     "voxel_mm": volume.spacing.tolist(), **frame.report()}
 
 
 def _crop_faces(volume: Volume, mid, normals, free) -> np.ndarray:
@@ -354,9 +378,9 @@ def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool =
     from meshes.external import attach_landmarks, read_occlusion
 
     ct_path, scene_file = Path(ct_path), Path(scene_file)
+    spec = parse_scene_file(scene_file)[0]   # its planes and frame before the CT
     if not ct_path.exists():
         raise MeshError(f"{ct_path} does not exist")
-    spec = read_scene_file(scene_file)
     key = hashlib.sha1(json.dumps([_code_digest(), _digest(ct_path), spec, resolution,
                                    labelmap], sort_keys=True).encode())
     path = cache_dir() / f"ct-{ct_path.stem}-{resolution}-{key.hexdigest()[:12]}.npz"

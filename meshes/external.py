@@ -11,6 +11,10 @@ Two paths, both ending in a validated `Anatomy`:
         "pivots": {"mandible": [0, 55, -60]},     # optional, mm; default segment centroid
         "occlusion": [[4x4]] or "occlusion.tfm", # optional: the final occlusion, the
                                                  # mandible's motion relative to the maxilla
+        "head_frame": [[4x4]],                   # optional: head frame -> this file's frame
+                                                 # (`meshes.frame`); default the identity;
+                                                 # with "head_tilt_deg" and
+                                                 # "head_frame_sources" (written, not read)
         "landmarks": {"Pg": [0, 101.7, -66], "Li": {"facet": [i, j, k], "weights": [a, b, c]}}}
 
    A landmark given as a point is projected onto the nearest skin facet; it must lie within
@@ -120,6 +124,15 @@ def read_occlusion(value, sidecar: Path):
     return read_transform(value, f"the occlusion in {sidecar}")
 
 
+def _head_frame(spec: dict, sidecar: Path):
+    from meshes.frame import HeadFrame
+
+    try:
+        return HeadFrame.from_report(spec)
+    except MeshError as e:
+        raise MeshError(f"{sidecar}: {e}") from None
+
+
 def load_tet_mesh(path, sidecar=None) -> Anatomy:
     """A tetrahedral mesh (meshio format) with a JSON sidecar naming tags and landmarks."""
     mesh = _read(path)
@@ -160,7 +173,8 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
     anatomy = Anatomy(points, np.concatenate(tets).astype(np.int64), facets, tags, segments,
                       {k: np.asarray(v, float) for k, v in spec.get("pivots", {}).items()},
                       {}, name=Path(path).name,
-                      occlusion=read_occlusion(spec.get("occlusion"), sidecar))
+                      occlusion=read_occlusion(spec.get("occlusion"), sidecar),
+                      head_frame=_head_frame(spec, sidecar))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
@@ -257,5 +271,7 @@ def write_tet_mesh(anatomy: Anatomy, path) -> list:
                           for k, v in anatomy.landmarks.items()}}
     if anatomy.occlusion is not None:
         spec["occlusion"] = np.asarray(anatomy.occlusion).tolist()
+    if anatomy.head_frame is not None:
+        spec.update(anatomy.head_frame.report())
     sidecar.write_text(json.dumps(spec, indent=1) + "\n")
     return [path, sidecar]

@@ -6,7 +6,9 @@ on which side a facet midpoint lies. The cuts (the JSON keys of an osteotomy fil
 
 * ``lefort1`` (normal up): the maxilla lies below it (d < 0);
 * ``midsagittal`` (normal to the patient's left): splits the maxilla into ``maxilla_L``
-  (d ≥ 0) and ``maxilla_R``; the CT landmarks are built on it;
+  (d ≥ 0) and ``maxilla_R``, and the mandible's sides for the ramus cuts; a cut plane only
+  (the landmarks are built on the head frame's mid-sagittal plane, `meshes.frame`). A CT
+  scene file may leave it out: the head frame's then serves;
 * ``occlusal`` (normal up): the maxilla above it, the mandible below;
 * ``ramus_L``, ``ramus_R`` (normal anterior): the BSSO cut of each side; the distal segment
   ``mandible`` lies in front (d > 0), the proximal segments behind stay fixed. Without an
@@ -73,7 +75,7 @@ def axis_plane(axis: int, value: float) -> Plane:
 class Osteotomies:
     """The cuts of a double-jaw (or LeFort I only) treatment, as planes (module docstring)."""
 
-    midsagittal: Plane
+    midsagittal: Plane | None = None
     lefort1: Plane | None = None
     occlusal: Plane | None = None
     ramus_L: Plane | None = None
@@ -87,8 +89,6 @@ class Osteotomies:
         if not isinstance(spec, dict):
             raise MeshError(f"{where}: expected a JSON object of planes")
         planes = {k: Plane.of(k, spec[k]) for k in PLANES if spec.get(k) is not None}
-        if "midsagittal" not in planes:
-            raise MeshError(f"{where}: the 'midsagittal' plane is required")
         if ("ramus_L" in planes) != ("ramus_R" in planes):
             raise MeshError(f"{where}: give both ramus cuts, 'ramus_L' and 'ramus_R', or none")
         if "ramus_L" in planes and "occlusal" not in planes:
@@ -114,6 +114,12 @@ class Osteotomies:
         except (OSError, json.JSONDecodeError) as e:
             raise MeshError(f"cannot read the osteotomy file {path}: {e}") from None
         return cls.from_dict(spec, str(path))
+
+    def with_midsagittal(self, plane: Plane) -> "Osteotomies":
+        """These cuts with ``plane`` as the midsagittal cut where they have none."""
+        if self.midsagittal is not None:
+            return self
+        return dataclasses.replace(self, midsagittal=plane)
 
     def segments(self) -> dict:
         """Segment name -> facet tag of the segments these cuts make."""

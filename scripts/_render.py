@@ -1,5 +1,7 @@
 """Pictures of a scene (matplotlib, no screen): the skin with its landmarks, and the bone
-surface coloured by role. For the README and the CT pipeline's check by eye."""
+surface coloured by role. For the README and the CT pipeline's check by eye. Drawn in the
+head frame (`meshes.frame`): the front and profile views are the face's, however the head
+lay in the scanner."""
 
 from __future__ import annotations
 
@@ -51,15 +53,17 @@ def render_scene(anatomy, path, title: str | None = None) -> None:
     import matplotlib.pyplot as plt
 
     from meshes.anatomy import SKIN, _facet_keys, boundary_facets
+    from meshes.frame import HeadFrame
 
-    pts, tags, tris = anatomy.points, anatomy.facet_tags, anatomy.facets
+    frame = anatomy.head_frame or HeadFrame.identity()
+    pts, tags, tris = frame.to_head(anatomy.points), anatomy.facet_tags, anatomy.facets
     fig = plt.figure(figsize=(15, 5.4))
     # the whole surface: skin in skin colour, the rest (crop faces, free surfaces) grey
     surface = boundary_facets(anatomy.cells)
     is_skin = np.isin(_facet_keys(surface, len(pts)),
                       _facet_keys(np.sort(tris[tags == SKIN], axis=1), len(pts)))
     rgb = np.where(is_skin[:, None], SKIN_COLOUR, (0.8, 0.8, 0.82))
-    lms = anatomy.landmark_positions()
+    lms = {n: frame.to_head(p) for n, p in anatomy.landmark_positions().items()}
     for k, view in enumerate(VIEWS):
         ax = fig.add_subplot(1, 3, k + 1, projection="3d")
         _draw(ax, pts, surface, _shaded(pts, surface, rgb), view)
@@ -105,12 +109,18 @@ def _curve(points, cuts):
 
 
 def render_before_after(rest, after, tris, landmarks: dict, targets: dict, path,
-                        title: str) -> None:
+                        title: str, frame=None) -> None:
     """A PNG at ``path``: the mid-sagittal skin profile before (rest, (N, 3) mm) and after a
     plan (``after``), with the landmarks after ({name: (3,)}, black) and their targets (red);
     and the face after the plan from the front, coloured by its displacement from rest (mm).
-    ``tris``: (T, 3) skin triangles into the points."""
+    ``tris``: (T, 3) skin triangles into the points; all in the scene's frame, drawn in the
+    head frame ``frame`` (`meshes.frame.HeadFrame`; None: the scene's)."""
     import matplotlib
+
+    if frame is not None:
+        rest, after = frame.to_head(rest), frame.to_head(after)
+        landmarks = {n: frame.to_head(p) for n, p in landmarks.items()}
+        targets = {n: frame.to_head(p) for n, p in targets.items()}
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -16,12 +16,12 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-#: name -> (CT, scene file, the 5 mm advance, the goal: landmark -> displacement mm, the
-#: plan's parameters). Goals: headsq's chin and lower lip 4 mm forward (a retruded lower
-#: face, both jaws advanced in the CT's occlusion); Cranium's subnasale 3 mm forward and the
-#: nasal tip 0.6 mm (a retruded midface, LeFort I advance; the nose follows 0.13-0.33 of it).
-#: Sn 3 mm forward and 1 mm down would ask for 5.9 mm of impaction (Sn rises 0.37 mm a mm
-#: of advance here) and compress the tissue to 48 % (plan.py, paper).
+#: name -> (CT, scene file, the 5 mm advance, the goal: landmark -> displacement mm in the
+#: head frame (`meshes.frame`), the plan's parameters). Goals: headsq's chin and lower lip
+#: 4 mm forward (a retruded lower face, both jaws advanced in the CT's occlusion); Cranium's
+#: subnasale 3 mm forward and the nasal tip 0.6 mm (a retruded midface, LeFort I advance;
+#: the nose follows 0.13-0.33 of it). Sn 3 mm forward and 1 mm down asked for 5.9 mm of
+#: impaction and compressed the tissue to 48 % (plan.py, paper).
 CTS = {
     "headsq": (ROOT.parent / "shared" / "data" / "headsq" / "headsq.mhd",
                ROOT / "meshes" / "examples" / "headsq.json", "jaws.advance_mm",
@@ -49,7 +49,7 @@ def _run(script: str, args: list, env: dict) -> dict:
 def _ratios(sim: dict, param: str) -> list:
     """[(landmark, published range, ratio)] of the rows of `bench_plausibility.RATIOS` whose
     treatment the CT's advance makes (jaws: the mandible's rows) and whose landmark it has."""
-    from scripts.bench_plausibility import RATIOS
+    from scripts.bench_plausibility import RATIOS, head_motion
 
     segment = param.split(".")[0]
     out = []
@@ -57,15 +57,18 @@ def _ratios(sim: dict, param: str) -> list:
         if lm not in sim["landmarks"] or (segment != "jaws" and p.split(".")[0] != segment) \
                 or (segment == "jaws" and not p.startswith("mandible")):
             continue
-        d = sim["landmarks"][lm][axis] - sim["landmarks_rest"][lm][axis]
-        out.append((f"{lm} {'up' if axis == 2 else 'fwd'}", rng, d / MOVE_MM))
+        out.append((f"{lm} {'up' if axis == 2 else 'fwd'}", rng,
+                    head_motion(sim, lm, axis) / MOVE_MM))
     return out
 
 
 def ct(args) -> None:
+    import numpy as np
+
     from scripts._bench import goal, header, plot, table, write_section
 
     rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
+    frames = {}   # CT -> its head frame's row
     for name in args.cts.split(","):
         ct_path, scene, param, shift, plan_params = CTS[name]
         if not ct_path.exists():
@@ -83,6 +86,12 @@ def ct(args) -> None:
                 t = rep["timings_s"]
                 stages[(name, res)] = {k: t[k] for k in ("read", "segment", "mesh",
                                                          "classify", "landmarks")}
+                frames.setdefault(name, [name, *(
+                    f"{rep['head_tilt_deg'][k]:+.2f}" for k in ("pitch_deg", "roll_deg",
+                                                                  "yaw_deg")),
+                    rep["head_frame_sources"]["midsagittal"],
+                    rep["head_frame_sources"]["horizontal"],
+                    ", ".join(sorted(rep["head_frame_points"])) or "—"])
                 if res == "paper":
                     goals.append(goal(f"CT to a paper-size scene, {name} (ct)", t["total"],
                                       "s", limit=GOAL_S, source="issue 16"))
@@ -90,8 +99,10 @@ def ct(args) -> None:
                                            f"{param}={MOVE_MM}"], env)
                 goal_lms = [k for k in shift if k in rep["landmarks"]]
                 targets = Path(out) / "targets.json"
-                targets.write_text(json.dumps({k: [a + b for a, b in zip(
-                    rep["landmarks"][k], shift[k])] for k in goal_lms}))
+                axes = np.asarray(rep["head_frame"])[:3, :3]   # the goal is the face's
+                targets.write_text(json.dumps({k: (np.asarray(rep["landmarks"][k])
+                                                   + axes @ shift[k]).tolist()
+                                               for k in goal_lms}))
                 plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
                                         "--landmarks", ",".join(goal_lms), "--params-used",
                                         plan_params], env) if goal_lms else {"error": "none"}
@@ -118,11 +129,20 @@ def ct(args) -> None:
         f"with a {MOVE_MM:g} mm advance of the moved bone (headsq: both jaws in the CT's "
         "occlusion, `jaws.advance_mm`; Cranium: the LeFort I, `maxilla.advance_mm`; seconds "
         "and iterations), then `scripts/plan.py --mesh` to the CT's goal (headsq: Pg and Li "
-        "4 mm, Me 3 mm forward; Cranium: Sn 3 mm and Prn 0.6 mm forward).",
+        "4 mm, Me 3 mm forward; Cranium: Sn 3 mm and Prn 0.6 mm forward; forward is the head "
+        "frame's).",
         ""]
     body += table(["CT", "resolution", "vertices", "tets", "min quality", "read", "segment",
                    "mesh", "classify", "landmarks", "total", "5 mm advance s (its)",
                    "plan: mean distance, time"], rows)
+    body += ["", "The head frame of each CT (`meshes.frame`, `ct.json`): its tilt from the "
+             "scanner's axes (degrees, the treatment's convention: pitch > 0 the face turned "
+             "up, roll > 0 the left side down, yaw > 0 the face turned to the patient's "
+             "right), how each reference plane was obtained, and the points found on the CT. "
+             "Landmarks, the advance's axis, the goals above and the ratios below are the "
+             "head frame's.", ""]
+    body += table(["CT", "pitch", "roll", "yaw", "mid-sagittal plane", "Frankfort horizontal",
+                   "points found"], list(frames.values()))
     body += ["", "Soft-to-hard ratios of the 5 mm advance against the published ranges "
              "(`bench.py plausibility` names the sources); ✗: outside. headsq moves both "
              "jaws en bloc (its teeth are in occlusion), so the lower lip rides on upper and "

@@ -3,9 +3,9 @@ clinical literature (issue 15 §4).
 
 For every case and resolution, two treatments from rest, each a fresh ``scripts/simulate.py``:
 a 5 mm BSSO advance (``mandible.advance_mm``) and a 5 mm LeFort I advance en bloc
-(``maxilla.advance_mm``). A ratio is the landmark's forward (+y) motion over the bone's 5 mm
-(a translation: incisors, B and A points, bony pogonion all move 5 mm); the nasal tip's
-elevation (+z) is reported beside its forward ratio.
+(``maxilla.advance_mm``). A ratio is the landmark's forward motion (+y of the head frame,
+`meshes.frame`) over the bone's 5 mm (a translation: incisors, B and A points, bony pogonion
+all move 5 mm); the nasal tip's elevation (+z) is reported beside its forward ratio.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ MOVE_MM = 5.0
 
 def ratios(simulate, case: str, res: str) -> dict:
     """{(param, landmark, axis): ratio} from two simulate.py runs (``simulate(args)``)."""
-    import numpy as np
 
     out = {}
     for param in dict.fromkeys(r[0] for r in RATIOS):
@@ -35,9 +34,17 @@ def ratios(simulate, case: str, res: str) -> dict:
             raise SystemExit(f"{case}/{res} {param}: {rep['error']}")
         for p, lm, axis, _, _ in RATIOS:
             if p == param:
-                d = np.subtract(rep["landmarks"][lm], rep["landmarks_rest"][lm])
-                out[(p, lm, axis)] = float(d[axis] / MOVE_MM)
+                out[(p, lm, axis)] = head_motion(rep, lm, axis) / MOVE_MM
     return out
+
+
+def head_motion(rep: dict, landmark: str, axis: int) -> float:
+    """A landmark's motion (mm) in a simulate.py report along the head frame's axis ``axis``
+    (1 anterior, 2 superior; `meshes.frame`), whatever the scene's frame."""
+    import numpy as np
+
+    d = np.subtract(rep["landmarks"][landmark], rep["landmarks_rest"][landmark])
+    return float(d @ np.asarray(rep.get("head_frame", np.eye(4)))[:3, axis])
 
 
 def plausibility(args) -> None:

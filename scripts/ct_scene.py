@@ -8,8 +8,9 @@
 
 ``--ct``: a DICOM folder, NIfTI, NRRD, MetaImage (.mha/.mhd) or an InVesalius .inv3 project
 (HU), or a label map with ``--labelmap`` (3D Slicer segmentation: 1 tissue, 2 bone). The
-osteotomy file holds the cut planes and the crop (`meshes.ct`, `meshes.osteotomy`); the
-landmarks are built on the mid-sagittal profile (`meshes.landmarks`) unless ``--landmarks``
+osteotomy file holds the cut planes, the crop and optionally the head frame (`meshes.ct`,
+`meshes.osteotomy`, `meshes.frame`: estimated when not given); the landmarks are built on the
+head frame's mid-sagittal profile (`meshes.landmarks`) unless ``--landmarks``
 (JSON ``{name: [x, y, z]}`` or a 3D Slicer ``.mrk.json``) gives them. The result is cached;
 the outputs are written whole or not at all. Under mpirun, rank 0 builds and writes.
 """
@@ -81,11 +82,15 @@ def main(argv=None):
             "skin_facets": int((anatomy.facet_tags == SKIN).sum()),
             "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
             "min_quality": info["min_quality"], "voxel_mm": info["voxel_mm"],
-            "cached": info["cached"], "timings_s": timings}
+            **anatomy.head_frame.report(), "cached": info["cached"], "timings_s": timings}
         print(f"{mesh}: {anatomy.n_vertices} vertices, {anatomy.n_cells} tets, segments "
               f"{report['segments']}, landmarks {sorted(report['landmarks'])}, min quality "
               f"{info['min_quality']:.3f}, {timings['total']:.1f} s"
               + (" (cached)" if info["cached"] else ""))
+        tilt = anatomy.head_frame.tilt_deg()
+        print("head frame: tilted from the scanner's axes by "
+              + ", ".join(f"{k.split('_')[0]} {v:+.2f} deg" for k, v in tilt.items())
+              + "; " + ", ".join(f"{k} {v}" for k, v in anatomy.head_frame.sources.items()))
     if args.picture:
         from scripts._render import render_scene
 

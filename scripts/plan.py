@@ -150,7 +150,7 @@ def _picture(scene, targets: dict, path, comm) -> None:
     landmarks = scene.landmarks(list(targets))
     title = f"{scene.case or dom.name}: the face before and after the plan"
     write_on_root(path, lambda p: render_before_after(rest, after, tris, landmarks, targets,
-                                                      p, title), comm)
+                                                      p, title, scene.head_frame), comm)
 
 
 def print_plan(report) -> None:

@@ -28,6 +28,7 @@ def _python(script_args):
 def _scene(url):
     status, scene = request(url + "api/scene")
     assert status == 200
+    assert np.allclose(scene["head_axes"], np.eye(3))   # a synthetic head: its own frame
     status, raw = request(url + "api/sensitivity")
     assert status == 200
     S = np.frombuffer(raw, dtype="<f4").reshape(len(scene["vertices"]), 3,

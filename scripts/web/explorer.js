@@ -66,7 +66,14 @@ function resize() {
 }
 window.addEventListener('resize', resize);
 
-function look(dir) {   // front: from anterior (+y); profile: from the patient's right (-x)
+// the head frame's axes in the scene's frame (left, anterior, superior): the views are the face's
+let headAxes = [new THREE.Vector3(1, 0, 0), new THREE.Vector3(0, 1, 0), new THREE.Vector3(0, 0, 1)];
+
+function look(view) {   // front: from anterior (+y); profile: from the patient's right (-x)
+  const dir = view === 'front' ? headAxes[1].clone() : headAxes[0].clone().negate();
+  camera.up.copy(headAxes[2]);   // the orbit axis too (OrbitControls keeps it from its start)
+  controls._quat.setFromUnitVectors(camera.up, new THREE.Vector3(0, 1, 0));
+  controls._quatInverse.copy(controls._quat).invert();
   camera.position.copy(center).addScaledVector(dir, 3.2 * radius);
   controls.target.copy(center);
   controls.update();
@@ -96,6 +103,7 @@ async function loadScene() {
   state.lm0 = Float64Array.from(state.lmNames.flatMap((n) => s.landmarks[n]));
   state.lmS = Float64Array.from(s.landmark_sensitivity.flat(2));   // (L, 3, nP)
   state.targets = s.targets;
+  headAxes = s.head_axes.map((a) => new THREE.Vector3(...a));
   $('occlusion').value = s.occlusion;
   const first = geometry.getAttribute('position') === undefined
     || geometry.getAttribute('position').count !== state.nV;
@@ -115,7 +123,7 @@ async function loadScene() {
     center = geometry.boundingSphere.center.clone();
     radius = geometry.boundingSphere.radius;
     camera.near = radius / 20; camera.far = radius * 20;
-    look(new THREE.Vector3(0, 1, 0));
+    look('front');
   }
 }
 
@@ -407,8 +415,8 @@ function download(name, data) {
 }
 
 function wire() {
-  $('front').onclick = () => look(new THREE.Vector3(0, 1, 0));
-  $('profile').onclick = () => look(new THREE.Vector3(-1, 0, 0));
+  $('front').onclick = () => look('front');
+  $('profile').onclick = () => look('profile');
   $('colour').onchange = () => requestFrame();
   $('solve').onclick = () => action('Solve', async () =>
     showAnswer(await api('/api/solve', { p: explorer.params() }), 'true equilibrium'));
