@@ -15,6 +15,9 @@ every `PROFILE_STEP_MM` from the bottom of the face to the top (its ``s``: how f
 * ``Me`` (soft-tissue menton): the lowest skin point under the chin, from rays cast downward
   in the plane within `MENTON_BACK_MM` behind Pg.
 
+Where a ray meets bone rather than skin (a tooth between parted lips, a nasal bridge whose
+thin skin the mesh loses), the profile goes on across it.
+
 A bulge or a hollow counts where it stands out by `PROMINENCE_MM` (the synthetic heads'
 stomion is 0.9 mm deep once voxelised); a flat one is marked at the middle of its part within
 `PLATEAU_MM` of its extreme. A landmark whose feature the
@@ -100,11 +103,15 @@ def _extrema(s, sign: float):
     return find_peaks(sign * s, prominence=PROMINENCE_MM)[0]
 
 
-def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane) -> dict:
+def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
+                      bone: np.ndarray | None = None) -> dict:
     """Landmarks {name: `Landmark`} on the skin facets ``skin`` (S, 3) over ``points`` (N, 3),
-    built on the profile in ``plane`` (module docstring)."""
+    built on the profile in ``plane`` (module docstring); ``bone`` (B, 3): the bone facets,
+    where a ray that misses the skin but meets bone bridges the profile."""
     o, a, u = _plane_axes(plane)
     tris = skin[_crossing(points, skin, plane)]
+    bone_tris = np.empty((0, 3), dtype=np.int64) if bone is None else \
+        bone[_crossing(points, bone, plane)]
     if len(tris) == 0:
         raise MeshError("the mid-sagittal plane does not cross the skin")
     rel = points[np.unique(tris)] - o
@@ -115,10 +122,14 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane) -> dic
     ok = np.array([h is not None for h in hits])
     if ok.sum() < 10:
         raise MeshError("the skin's mid-sagittal profile is too short to place landmarks")
+    bridged = np.array([not k and len(bone_tris) > 0 and intersect_rays(
+        points, bone_tris, o + s0 * a + t * u, a) is not None for k, t in zip(ok, ts)])
     # top to bottom; a run is a stretch with no gap longer than GAP_MM (a crop, a cut field
-    # of view; a tooth between parted lips is a short gap)
+    # of view). Bone in the profile does not end a run: a tooth between parted lips, the
+    # nasal bridge where the mesh loses its thin skin (Cranium: 2-5 mm of bone there, more
+    # or less with the head's tilt)
     gap = np.zeros(len(ok), dtype=bool)
-    missing = np.flatnonzero(~ok)
+    missing = np.flatnonzero(~ok & ~bridged)
     if len(missing):
         starts = np.r_[0, np.flatnonzero(np.diff(missing) > 1) + 1]
         for lo, hi in zip(starts, np.r_[starts[1:], len(missing)]):
@@ -174,10 +185,12 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane) -> dic
     return out
 
 
-def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane) -> dict:
-    """Every landmark the scan holds {name: `Landmark`}: the profile's, and tragion searched
-    above the lowest of Li, Pg and Me that the profile found (module docstring)."""
-    found = profile_landmarks(points, skin, plane)
+def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
+                   bone: np.ndarray | None = None) -> dict:
+    """Every landmark the scan holds {name: `Landmark`}: the profile's (``bone``: as in
+    `profile_landmarks`), and tragion searched above the lowest of Li, Pg and Me that the
+    profile found (module docstring)."""
+    found = profile_landmarks(points, skin, plane, bone)
     _, _, u = _plane_axes(plane)
     floor = max(((found[k].position(points) - plane.point) @ u for k in ("Li", "Pg", "Me")
                  if k in found), default=-np.inf)

@@ -34,6 +34,8 @@ CTS = {
 }
 MOVE_MM = 5.0
 GOAL_S = 60.0
+#: ct_scene.py's stages, in order ("frame": the head frame estimated on the whole CT).
+STAGES = ("read", "frame", "segment", "mesh", "classify", "landmarks")
 
 
 def _run(script: str, args: list, env: dict) -> dict:
@@ -72,7 +74,7 @@ def ct(args) -> None:
     for name in args.cts.split(","):
         ct_path, scene, param, shift, plan_params = CTS[name]
         if not ct_path.exists():
-            rows.append([name, "", f"absent: {ct_path}"] + [""] * 10)
+            rows.append([name, "", f"absent: {ct_path}"] + [""] * (len(STAGES) + 5))
             continue
         for res in args.resolutions.split(","):
             with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
@@ -81,11 +83,10 @@ def ct(args) -> None:
                 rep = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene),
                                            "--resolution", res, "--out", out], env)
                 if "error" in rep:
-                    rows.append([name, res, rep["error"]] + [""] * 10)
+                    rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 5))
                     continue
                 t = rep["timings_s"]
-                stages[(name, res)] = {k: t[k] for k in ("read", "segment", "mesh",
-                                                         "classify", "landmarks")}
+                stages[(name, res)] = {k: t.get(k, 0.0) for k in STAGES}
                 frames.setdefault(name, [name, *(
                     f"{rep['head_tilt_deg'][k]:+.2f}" for k in ("pitch_deg", "roll_deg",
                                                                   "yaw_deg")),
@@ -113,8 +114,7 @@ def ct(args) -> None:
                 f" mm, {plan['timings_s']['total']:.1f} s")
             rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
                          f"{rep['min_quality']:.3f}",
-                         *(f"{t[k]:.1f}" for k in ("read", "segment", "mesh", "classify",
-                                                   "landmarks")),
+                         *(f"{v:.1f}" for v in stages[(name, res)].values()),
                          f"**{t['total']:.1f}**", fwd, pl])
             if "error" not in sim:
                 for lm, rng, v in _ratios(sim, param):
@@ -132,9 +132,8 @@ def ct(args) -> None:
         "4 mm, Me 3 mm forward; Cranium: Sn 3 mm and Prn 0.6 mm forward; forward is the head "
         "frame's).",
         ""]
-    body += table(["CT", "resolution", "vertices", "tets", "min quality", "read", "segment",
-                   "mesh", "classify", "landmarks", "total", "5 mm advance s (its)",
-                   "plan: mean distance, time"], rows)
+    body += table(["CT", "resolution", "vertices", "tets", "min quality", *STAGES, "total",
+                   "5 mm advance s (its)", "plan: mean distance, time"], rows)
     body += ["", "The head frame of each CT (`meshes.frame`, `ct.json`): its tilt from the "
              "scanner's axes (degrees, the treatment's convention: pitch > 0 the face turned "
              "up, roll > 0 the left side down, yaw > 0 the face turned to the patient's "
@@ -155,7 +154,7 @@ def ct(args) -> None:
     def draw(plt):
         plt.figure(figsize=(6, 3))
         labels, left = [f"{c} {r}" for c, r in stages], [0.0] * len(stages)
-        for k in ("read", "segment", "mesh", "classify", "landmarks"):
+        for k in STAGES:
             w = [st[k] for st in stages.values()]
             plt.barh(labels, w, left=left, label=k)
             left = [a + b for a, b in zip(left, w)]
