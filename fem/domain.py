@@ -52,7 +52,7 @@ class Domain:
     n_vertices: int
     n_cells: int
     occlusion: np.ndarray | None = None
-    head_frame: np.ndarray | None = None
+    head_frame: object = None   # meshes.frame.HeadFrame or None
 
     @property
     def degree(self) -> int:

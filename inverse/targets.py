@@ -113,7 +113,8 @@ def default_targets(case: str, rest: dict, frame=None) -> dict:
     missing = [n for n in ("N", "Sn", "Pg", "Prn") if n not in rest]
     if missing:
         raise InputError(f"the default goal needs landmarks {missing}")
-    if frame is None:
-        return {n: np.asarray(x).tolist() for n, x in DEFAULT_GOALS[case](rest).items()}
+    from meshes.frame import HeadFrame
+
+    frame = frame or HeadFrame.identity()
     head = {n: frame.to_head(x) for n, x in rest.items()}
     return {n: frame.to_scene(x).tolist() for n, x in DEFAULT_GOALS[case](head).items()}

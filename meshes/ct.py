@@ -313,9 +313,9 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     timings["classify"] = time.perf_counter() - t
     t = time.perf_counter()
     skin = anatomy.facets[anatomy.facet_tags == SKIN]
-    bone_facets = anatomy.facets[~np.isin(anatomy.facet_tags, (SKIN, RIM))]
+    rest = tags != SKIN   # the whole boundary but the skin: bone, free and crop faces
     anatomy.landmarks = skin_landmarks(frame.to_head(anatomy.points), skin, HEAD_MIDSAGITTAL,
-                                       bone_facets)
+                                       (facets[rest], ~np.isin(tags[rest], (0, RIM))))
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     return anatomy, {"timings_s": timings,

@@ -16,7 +16,8 @@ every `PROFILE_STEP_MM` from the bottom of the face to the top (its ``s``: how f
   in the plane within `MENTON_BACK_MM` behind Pg.
 
 Where a ray meets bone rather than skin (a tooth between parted lips, a nasal bridge whose
-thin skin the mesh loses), the profile goes on across it.
+thin skin the mesh loses), the profile goes on across it; where it meets a crop face or
+nothing, the profile has a gap.
 
 A bulge or a hollow counts where it stands out by `PROMINENCE_MM` (the synthetic heads'
 stomion is 0.9 mm deep once voxelised); a flat one is marked at the middle of its part within
@@ -104,14 +105,17 @@ def _extrema(s, sign: float):
 
 
 def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
-                      bone: np.ndarray | None = None) -> dict:
+                      surface=None) -> dict:
     """Landmarks {name: `Landmark`} on the skin facets ``skin`` (S, 3) over ``points`` (N, 3),
-    built on the profile in ``plane`` (module docstring); ``bone`` (B, 3): the bone facets,
-    where a ray that misses the skin but meets bone bridges the profile."""
+    built on the profile in ``plane`` (module docstring). ``surface``: (facets (B, 3), is_bone
+    (B,)) the rest of the boundary; a ray that misses the skin and meets bone first bridges
+    the profile (a free crop face or a held one in front of it does not)."""
     o, a, u = _plane_axes(plane)
     tris = skin[_crossing(points, skin, plane)]
-    bone_tris = np.empty((0, 3), dtype=np.int64) if bone is None else \
-        bone[_crossing(points, bone, plane)]
+    other, is_bone = (np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=bool)) \
+        if surface is None else surface
+    cut = _crossing(points, other, plane)
+    other, is_bone = other[cut], is_bone[cut]
     if len(tris) == 0:
         raise MeshError("the mid-sagittal plane does not cross the skin")
     rel = points[np.unique(tris)] - o
@@ -122,8 +126,10 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     ok = np.array([h is not None for h in hits])
     if ok.sum() < 10:
         raise MeshError("the skin's mid-sagittal profile is too short to place landmarks")
-    bridged = np.array([not k and len(bone_tris) > 0 and intersect_rays(
-        points, bone_tris, o + s0 * a + t * u, a) is not None for k, t in zip(ok, ts)])
+    bridged = np.zeros(len(ok), dtype=bool)
+    for i in np.flatnonzero(~ok) if is_bone.any() else ():
+        hit = intersect_rays(points, other, o + s0 * a + ts[i] * u, a)
+        bridged[i] = hit is not None and is_bone[hit[0]]
     # top to bottom; a run is a stretch with no gap longer than GAP_MM (a crop, a cut field
     # of view). Bone in the profile does not end a run: a tooth between parted lips, the
     # nasal bridge where the mesh loses its thin skin (Cranium: 2-5 mm of bone there, more
@@ -185,12 +191,11 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     return out
 
 
-def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
-                   bone: np.ndarray | None = None) -> dict:
-    """Every landmark the scan holds {name: `Landmark`}: the profile's (``bone``: as in
+def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane, surface=None) -> dict:
+    """Every landmark the scan holds {name: `Landmark`}: the profile's (``surface``: as in
     `profile_landmarks`), and tragion searched above the lowest of Li, Pg and Me that the
     profile found (module docstring)."""
-    found = profile_landmarks(points, skin, plane, bone)
+    found = profile_landmarks(points, skin, plane, surface)
     _, _, u = _plane_axes(plane)
     floor = max(((found[k].position(points) - plane.point) @ u for k in ("Li", "Pg", "Me")
                  if k in found), default=-np.inf)
