@@ -24,14 +24,16 @@ head's axes and origin in the scene's frame. For the synthetic heads ``H`` is th
 **Estimated** (no ``"frame"``), on the whole CT before the crop (`estimate`):
 
 * the MSP is the bone's plane of symmetry (`symmetry_plane`: the bone surface registered with
-  its mirror image, trimmed, so that an asymmetric jaw does not pull the plane);
+  its mirror image, distances capped, so that an asymmetric jaw does not pull the plane);
 * the FH passes through the porions (the tops of the bony ear canals) and the left orbitale
   (the lowest point of the infraorbital rim; the right one where the left is not found),
-  found on the CT where it holds them (`frankfort_points`; Cranium: pitch, roll and yaw
-  within 0.8 degrees of a tilt of up to 10 degrees). Otherwise (no ear canals in the field
-  of view, 3.2 mm voxels that lose the thin tympanic bone as headsq's do, a label map) the
-  scan's axial plane stands for it (z is the scanner's z made perpendicular to the MSP), with
-  a warning: a head pitched in the scanner then keeps its pitch; give the clinical points.
+  found on the CT where it holds them (`frankfort_points`; a synthetic head with canals and
+  orbits: within 0.6 degrees of its true frame, tilted up to 10 degrees about each axis;
+  Cranium tilted so: within 0.5 degrees of its untilted frame, tilted). Otherwise (no ear
+  canals in the field of view, 3.2 mm voxels that lose the thin tympanic bone as headsq's
+  do, a label map) the scan's axial plane stands for it (z is the scanner's z made
+  perpendicular to the MSP), with a warning: a head pitched in the scanner then keeps its
+  pitch; give the clinical points.
 
 The scene file's ``midsagittal`` osteotomy plane is a cut plane only; without one the cut is
 the frame's MSP.
@@ -318,6 +320,9 @@ def symmetry_plane(volume, bone: np.ndarray):
 #: tympanic bone: no canal is found there, and the FH is assumed.
 AIR_HU = -400.0
 CANAL_WALL_MM = 6.0
+#: An edge (the canal's roof, the rim's top) is placed halfway between the HU on its two
+#: sides, the far side read within this many voxels (`_roof`).
+EDGE_VOXELS = 3
 CANAL_MIN_OFFSET_MM = 25.0
 CANAL_MIN_MM3 = 30.0
 CANAL_LATERAL_MM = 4.0
@@ -325,15 +330,15 @@ CANAL_LATERAL_MM = 4.0
 #: ORBIT_DEPTH_MM into each orbital opening below its rim (a grey closing of that surface over
 #: a disk ORBIT_CLOSING_MM across, wider than an orbit's ~35 mm opening, is the rim's level),
 #: in parts of at least ORBIT_MIN_MM2, ORBIT_OFFSET_MM from the MSP, their centres
-#: ORBIT_ABOVE_PORION_MM above the porions (the orbits' centres lie 20-30 mm above the FH; the
-#: thin frontal bone above them, which the bone threshold also loses, lies 60 mm and more
-#: above). The orbitale is the rim's top at the opening's lowest point (the middle of a flat
-#: bottom).
+#: ORBIT_ABOVE_PORION_MM above the porions in the scan's axial frame (the orbits' centres lie
+#: 15-30 mm above the FH, 80 mm in front of the porions: a head pitched 20 degrees moves them
+#: 27 mm; the thin frontal bone above them, which the bone threshold also loses, lies 60 mm
+#: and more above). The orbitale is the lowest top of the rim under the opening's lowest rows.
 ORBIT_DEPTH_MM = 12.0
 ORBIT_CLOSING_MM = 40.0
 ORBIT_MIN_MM2 = 300.0
 ORBIT_OFFSET_MM = (12.0, 55.0)
-ORBIT_ABOVE_PORION_MM = (5.0, 50.0)
+ORBIT_ABOVE_PORION_MM = (-20.0, 50.0)
 #: Found points are refused (the FH assumed) when the porions' heights differ by more than
 #: this, or the FH is tilted from the scan's axial plane by more than FH_MAX_TILT_DEG: a patient
 #: is not scanned upside down, and such a plane means the search found something else.
@@ -341,14 +346,22 @@ PORION_LEVEL_MM = 10.0
 FH_MAX_TILT_DEG = 30.0
 
 
-def _level_crossing(values, z0: float, dz: float, level: float) -> float:
-    """Where the samples ``values`` (K,) at z0 + k dz first cross ``level`` (linear), else z0."""
-    v = np.asarray(values, float)
-    above = (v - level) * np.sign(v[0] - level) <= 0
-    k = int(np.argmax(above)) if above.any() else 0
-    if k == 0:
-        return z0
-    return z0 + dz * (k - 1 + (level - v[k - 1]) / (v[k] - v[k - 1]))
+def _roof(values, inside, k: int, z0: float, dz: float) -> float:
+    """The top edge (mm) of the run of ``inside`` (K,) samples around index k of a column of
+    ``values`` (K,) at z0 + i dz: where the values, from a sample wholly inside (one below the
+    run's last, where the run has two), reach halfway to the value beyond the edge (the far
+    side of the largest step within `EDGE_VOXELS`): sub-voxel, unbiased for any pair of HU
+    levels."""
+    while k + 1 < len(inside) and inside[k + 1]:
+        k += 1
+    k0 = k - 1 if k > 0 and inside[k - 1] else k
+    v = np.asarray(values, float)[k0:k0 + EDGE_VOXELS + 2]
+    if len(v) < 2:
+        return z0 + dz * k
+    far = int(np.argmax(np.abs(v[1:] - v[0]))) + 1
+    level = (v[0] + v[far]) / 2
+    j = int(np.argmax((v[1:far + 1] - level) * np.sign(v[far] - v[0]) >= 0)) + 1
+    return z0 + dz * (k0 + j - 1 + (level - v[j - 1]) / (v[j] - v[j - 1]))
 
 
 def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
@@ -384,9 +397,11 @@ def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
         ijk = np.argwhere(parts == 1 + int(np.argmax(sizes)))
         d = side * x[ijk[:, 0]]
         rim = ijk[d >= d.max() - CANAL_LATERAL_MM]
-        i, j, k = rim[np.argmax(rim[:, 2])]
-        z = _level_crossing(hu[i, j, k:], zs[k], sp[2], AIR_HU)
-        out[f"porion_{name}"] = to_scene([x[i] + o[0], ys[j], z])
+        _, first = np.unique(rim[:, :2], axis=0, return_index=True)   # one per column
+        cols = rim[first]
+        roofs = [_roof(hu[i, j], hu[i, j] < AIR_HU, k, zs[0], sp[2]) for i, j, k in cols]
+        i, j, _ = cols[int(np.argmax(roofs))]   # the highest point of its roof
+        out[f"porion_{name}"] = to_scene([x[i] + o[0], ys[j], max(roofs)])
     if len(out) < 2:
         return out
     z_po = np.mean([frame.to_head(p)[2] for p in out.values()])
@@ -414,11 +429,12 @@ def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
         low = kk.min()
         if low == 0:
             continue
-        cols = np.sort(ii[kk == low])
-        i = cols[len(cols) // 2]
-        j = front_j[i, low - 1]
-        z = _level_crossing(hu[i, j, low - 1:], zs[low - 1], sp[2], bone_hu)
-        out[f"orbitale_{name}"] = to_scene([x[i] + o[0], ys[j], z])
+        cols = np.unique(ii[kk <= low + 1])   # the opening's lowest rows: the rim below
+        # one voxel behind the rim's front, where the rim is bone through
+        behind = [(i, max(front_j[i, k] - 1, 0), k) for i in cols for k in [kk[ii == i].min() - 1]]
+        rims = [_roof(hu[i, j], bone[i, j], k, zs[0], sp[2]) for i, j, k in behind]
+        i, j, _ = behind[int(np.argmin(rims))]   # the rim's lowest point
+        out[f"orbitale_{name}"] = to_scene([x[i] + o[0], ys[j], min(rims)])
     return out
 
 

@@ -140,37 +140,78 @@ def test_treatment_axes_are_the_head_frames(tiny_anatomy):
 
 
 # ---------------------------------------------------------------- estimated frames
-def _head_ct(M, voxel: float = 2.0):
-    """The synthetic class1 head, whole, voxelised at ``voxel`` mm (HU) after the rigid
-    motion M (4×4): a head lying tilted in the scanner, sampled from its own primitives (no
-    interpolation)."""
+#: Ear canals and orbits carved into the synthetic skull (mm, its own frame), so that its
+#: Frankfort horizontal is known: canals of radius EAR_R along x through the bone and the skin
+#: at (y, z) = EAR_YZ (the porions, the tops of their lumens, at z = 5 + 4 = 9), orbits of
+#: radius ORBIT_R about (±30, z = 25) sunk into the bone's front down to y = ORBIT_BACK
+#: (the orbitale, their lowest rim point, at z = 25 - 16 = 9): the FH is z = 9.
+EAR_YZ, EAR_R = (-5.0, 5.0), 4.0
+ORBIT_XZ, ORBIT_R, ORBIT_BACK = (30.0, 25.0), 16.0, 55.0
+
+
+def _head_ct(M, voxel: float = 2.0, ears_and_orbits: bool = False):
+    """The synthetic class1 head, whole, as a CT (HU) of ``voxel`` mm after the rigid motion
+    M (4×4): a head lying tilted in the scanner, sampled from its own primitives with the
+    partial volume of a scanner (a voxel's value is the share of it on either side of a
+    surface, from the signed distance); with ear canals and orbits (`EAR_YZ`, `ORBIT_XZ`)."""
     from meshes.synthetic import CASES, CT_HU, _distances
     from meshes.volume import Volume
 
     lo, hi = np.array([-95.0, -115.0, -105.0]), np.array([95.0, 140.0, 125.0])
     axes = [np.arange(a, b + voxel / 2, voxel) for a, b in zip(lo, hi)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    d_skin, d_bone = _distances(CASES["class1"], (g - M[:3, 3]) @ M[:3, :3])
-    hu = np.where(d_bone < 0, CT_HU["bone"], np.where(d_skin < 0, CT_HU["tissue"],
-                                                      CT_HU["air"]))
-    return Volume(hu.reshape([len(a) for a in axes]).astype(np.int16), np.full(3, voxel), lo,
-                  "tilted class1")
+    head = (g - M[:3, 3]) @ M[:3, :3]   # the head's own coordinates
+    inside = lambda d: np.clip(0.5 - d / voxel, 0.0, 1.0)   # noqa: E731  (d < 0 inside)
+    d_skin, d_bone = _distances(CASES["class1"], head)
+    skin, bone = inside(d_skin), inside(d_bone)
+    if ears_and_orbits:
+        x, y, z = head.T
+        canal = inside(np.maximum(np.hypot(y - EAR_YZ[0], z - EAR_YZ[1]) - EAR_R,
+                                  45.0 - np.abs(x)))
+        orbit = inside(np.maximum(np.hypot(np.abs(x) - ORBIT_XZ[0], z - ORBIT_XZ[1])
+                                  - ORBIT_R, ORBIT_BACK - y))
+        skin, bone = skin * (1 - canal), bone * (1 - orbit) * (1 - canal)
+    bone = np.minimum(bone, skin)
+    hu = CT_HU["air"] + (CT_HU["tissue"] - CT_HU["air"]) * skin \
+        + (CT_HU["bone"] - CT_HU["tissue"]) * bone
+    return Volume(np.rint(hu).reshape([len(a) for a in axes]).astype(np.int16),
+                  np.full(3, voxel), lo, "tilted class1")
+
+
+@pytest.mark.parametrize("angles", [(0.0, 0.0, 0.0)] + YAW_ROLL + PITCHED)
+def test_estimated_frame_of_a_tilted_synthetic_head(angles):
+    """The synthetic head with ear canals and orbits (its FH known: z = 9), tilted by up to
+    10 degrees about each axis: the estimated frame (the MSP by symmetry, the FH through the
+    porions and orbitale found) is the tilt within 1 degree, and the points found lie on the
+    true FH within half a voxel."""
+    from meshes import segment as seg
+    from meshes.frame import estimate
+
+    M = _motion(_rotation(*angles), CENTRE)
+    v = _head_ct(M, ears_and_orbits=True)
+    frame = estimate(v, seg.labels_from_ct(v)[1], seg.BONE_HU)
+    assert frame.sources == {"midsagittal": "estimated", "horizontal": "estimated"}
+    assert _angle_deg(frame.rotation, M[:3, :3]) < 1.0, (angles, frame.tilt_deg())
+    fh = EAR_YZ[1] + EAR_R
+    for name, p in frame.points.items():
+        head = M[:3, :3].T @ (p - M[:3, 3])
+        assert abs(head[2] - fh) < v.spacing[2] / 2, (name, head)
 
 
 @pytest.mark.parametrize("angles", YAW_ROLL)
-def test_estimated_frame_of_a_tilted_synthetic_head(angles, caplog):
-    """The estimated frame of the head tilted in yaw and roll is the tilt within 1 degree,
-    and the frame's mid-sagittal plane passes through the head's (x = 0) within a voxel; the
-    horizontal it assumed is named in a warning."""
+def test_estimated_frame_without_ears_assumes_the_axial_plane(angles, caplog):
+    """Without ear canals and orbits the FH is the scan's axial plane, and a warning names
+    it; tilted in yaw and roll, the frame is still the tilt within 1 degree (the MSP by
+    symmetry), through the head's own MSP (x = 0) within a voxel."""
     from meshes import segment as seg
     from meshes.frame import estimate
 
     M = _motion(_rotation(*angles), CENTRE)
     v = _head_ct(M)
-    frame = estimate(v, seg.labels_from_ct(v)[1])
-    assert _angle_deg(frame.rotation, M[:3, :3]) < 1.0, (angles, frame.tilt_deg())
-    assert abs(M[:3, 0] @ (frame.origin - M[:3, 3])) < 2.0
+    frame = estimate(v, seg.labels_from_ct(v)[1], seg.BONE_HU)
     assert frame.sources == {"midsagittal": "estimated", "horizontal": "assumed"}
+    assert _angle_deg(frame.rotation, M[:3, :3]) < 1.0, (angles, frame.tilt_deg())
+    assert abs(M[:3, 0] @ (frame.origin - M[:3, 3])) < v.spacing[0]
     assert "assumed to be the scan's axial plane" in caplog.text
 
 
