@@ -8,9 +8,9 @@ import pytest
 from test_ct import CRANIUM, CT_SCENE, EXAMPLES, HEADSQ, PLAN, SIMULATE, _run, needs_cranium
 
 #: Tilts (degrees: pitch about x, roll about y, yaw about z; R = Rz Ry Rx, the treatment's
-#: convention) of up to 10 degrees about each axis. The estimated frame finds yaw and roll
-#: (the bone's symmetry); pitch needs the Frankfort horizontal, so the pitched tilts are given
-#: their frame points, tilted with the head.
+#: convention) of up to 10 degrees about each axis. The bone's symmetry finds yaw and roll;
+#: pitch needs the Frankfort horizontal: the ear canals and orbits found on the CT, or given
+#: points.
 YAW_ROLL = [(0.0, 6.0, 8.0), (0.0, 0.0, -10.0), (0.0, -10.0, 0.0), (0.0, 7.0, -9.0)]
 PITCHED = [(8.0, 0.0, 6.0), (-10.0, 5.0, -7.0)]
 #: Where the synthetic head is rotated about (mm): the middle of its skull.
