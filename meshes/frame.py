@@ -200,8 +200,8 @@ def from_points(points: dict, where: str = "frame") -> HeadFrame:
     fwd = p["nasion"] - origin
     fwd = fwd - (fwd @ up) * up     # the MSP holds up and the origin-to-nasion direction
     if np.linalg.norm(fwd) < DEGENERATE_MM:
-        raise MeshError(f"{where}: the nasion lies straight above the porions' midpoint: the "
-                        "mid-sagittal plane would be parallel to nothing it can be told from")
+        raise MeshError(f"{where}: the nasion lies straight above the porions' midpoint, so "
+                        "it gives the mid-sagittal plane no forward direction")
     left = np.cross(fwd, up)
     left *= np.sign(left @ (po_l - po_r))
     if abs(_unit(left, "MSP") @ (po_l - po_r)) < DEGENERATE_MM:
@@ -340,6 +340,11 @@ ORBIT_CLOSING_MM = 40.0
 ORBIT_MIN_MM2 = 300.0
 ORBIT_OFFSET_MM = (12.0, 55.0)
 ORBIT_ABOVE_PORION_MM = (-20.0, 50.0)
+#: The frame is estimated on voxels at least this far apart (mm): a CBCT's 0.3-0.4 mm voxels
+#: are taken every k-th (Cranium resampled at 0.4 mm, 147 M voxels: 14.7 s on every 2nd
+#: voxel, within 0.3 degrees of its frame at 0.96 mm; the edges are placed at sub-voxel
+#: precision).
+ESTIMATE_VOXEL_MM = 0.9
 #: Found points are refused (the FH assumed) when the porions' heights differ by more than
 #: this, or the FH is tilted from the scan's axial plane by more than FH_MAX_TILT_DEG: a patient
 #: is not scanned upside down, and such a plane means the search found something else.
@@ -455,6 +460,12 @@ def estimate(volume, bone: np.ndarray, bone_hu: float | None = None) -> HeadFram
     by symmetry; the FH through the porions and the left orbitale (the right where the left is
     not found) where ``bone_hu`` is given (a CT in HU) and `frankfort_points` finds them,
     else the scan's axial plane, with a warning that says so (module docstring)."""
+    step = np.maximum(1, np.floor(ESTIMATE_VOXEL_MM / volume.spacing)).astype(int)
+    if (step > 1).any():   # a CBCT's fine voxels: every k-th, about ESTIMATE_VOXEL_MM apart
+        cut = tuple(slice(None, None, k) for k in step)
+        volume = dataclasses.replace(volume, array=volume.array[cut],
+                                     spacing=volume.spacing * step)
+        bone = bone[cut]
     n, origin, rms = symmetry_plane(volume, bone)
     frame = from_axes(n, np.array([0.0, 0.0, 1.0]), origin,
                       {"midsagittal": "estimated", "horizontal": "assumed"})
