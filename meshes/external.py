@@ -13,8 +13,9 @@ Two paths, both ending in a validated `Anatomy`:
                                                  # mandible's motion relative to the maxilla
         "head_frame": [[4x4]],                   # optional: head frame -> this file's frame
                                                  # (`meshes.frame`); default the identity;
-                                                 # with "head_tilt_deg" and
-                                                 # "head_frame_sources" (written, not read)
+                                                 # with "head_frame_sources" and
+                                                 # "head_frame_points" (read back) and
+                                                 # "head_tilt_deg" (written, not read)
         "landmarks": {"Pg": [0, 101.7, -66], "Li": {"facet": [i, j, k], "weights": [a, b, c]}}}
 
    A landmark given as a point is projected onto the nearest skin facet; it must lie within

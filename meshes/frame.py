@@ -378,12 +378,10 @@ def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
 
     from meshes.volume import rotate_volume
 
-    R, o = frame.rotation, frame.origin
-    h = rotate_volume(volume, R.T, o, fill=-1000.0)   # grid axes along the head's
+    o = frame.origin
+    h = rotate_volume(volume, frame.rotation.T, o, fill=-1000.0)   # grid axes: the head's
     hu, sp = h.array.astype(np.float32), h.spacing
-    x = h.centres(0) - o[0]   # the MSP is x = o[0] on this grid
-    ys, zs = h.centres(1), h.centres(2)
-    to_scene = lambda q: R @ (np.asarray(q) - o) + o   # noqa: E731
+    x, ys, zs = (h.centres(a) - o[a] for a in range(3))   # the grid in head coordinates
     bone = hu > bone_hu
     lab, _ = ndimage.label(hu < AIR_HU)
     faces = [lab[0], lab[-1], lab[:, 0], lab[:, -1], lab[:, :, 0], lab[:, :, -1]]
@@ -407,7 +405,7 @@ def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
         cols = rim[first]
         roofs = [_roof(hu[i, j], hu[i, j] < AIR_HU, k, zs[0], sp[2]) for i, j, k in cols]
         i, j, _ = cols[int(np.argmax(roofs))]   # the highest point of its roof
-        out[f"porion_{name}"] = to_scene([x[i] + o[0], ys[j], max(roofs)])
+        out[f"porion_{name}"] = frame.to_scene([x[i], ys[j], max(roofs)])
     if len(out) < 2:
         return out
     z_po = np.mean([frame.to_head(p)[2] for p in out.values()])
@@ -418,7 +416,7 @@ def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
     g = np.mgrid[-r[0]:r[0] + 1, -r[1]:r[1] + 1]
     disk = (g[0] * sp[0]) ** 2 + (g[1] * sp[2]) ** 2 <= (ORBIT_CLOSING_MM / 2) ** 2
     deep = ndimage.grey_closing(front, footprint=disk) - front > ORBIT_DEPTH_MM
-    height = zs - (o[2] + z_po)   # above the porions
+    height = zs - z_po   # above the porions
     for name, side in (("L", 1.0), ("R", -1.0)):
         lateral = (side * x >= ORBIT_OFFSET_MM[0]) & (side * x <= ORBIT_OFFSET_MM[1])
         parts, n = ndimage.label(deep & lateral[:, None])
@@ -440,7 +438,7 @@ def frankfort_points(volume, frame: HeadFrame, bone_hu: float) -> dict:
         behind = [(i, max(front_j[i, k] - 1, 0), k) for i in cols for k in [kk[ii == i].min() - 1]]
         rims = [_roof(hu[i, j], bone[i, j], k, zs[0], sp[2]) for i, j, k in behind]
         i, j, _ = behind[int(np.argmin(rims))]   # the rim's lowest point
-        out[f"orbitale_{name}"] = to_scene([x[i] + o[0], ys[j], min(rims)])
+        out[f"orbitale_{name}"] = frame.to_scene([x[i], ys[j], min(rims)])
     return out
 
 
@@ -477,8 +475,8 @@ def estimate(volume, bone: np.ndarray, bone_hu: float | None = None) -> HeadFram
         up = np.cross(found["porion_R"] - found["porion_L"], orb - found["porion_L"])
         up = _unit(up * np.sign(up[2]), "the Frankfort horizontal's normal")
         tilt = np.degrees(np.arccos(min(abs(float(up[2])), 1.0)))
-        if abs(po_l[2] - po_r[2]) > PORION_LEVEL_MM or tilt > FH_MAX_TILT_DEG:
-            dz = abs(po_l[2] - po_r[2])
+        dz = abs(po_l[2] - po_r[2])
+        if dz > PORION_LEVEL_MM or tilt > FH_MAX_TILT_DEG:
             why = (f"the porions and orbitale found are implausible (porions {dz:.1f} mm "
                    f"apart in height, the plane {tilt:.0f} degrees from axial)")
         else:
