@@ -20,6 +20,13 @@ def vector_space(mesh, degree: int = 1):
     return dolfinx.fem.VectorFunctionSpace(mesh, ("CG", degree))
 
 
+def tensor_space(mesh):
+    """Piecewise-constant (DG0) 3×3 tensors on the cells of ``mesh``."""
+    if NEW_API:
+        return dolfinx.fem.functionspace(mesh, ("DG", 0, (3, 3)))
+    return dolfinx.fem.TensorFunctionSpace(mesh, ("DG", 0))
+
+
 def scalar_space(mesh, family: str = "DG", degree: int = 0):
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, (family, degree))

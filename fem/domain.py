@@ -35,8 +35,8 @@ class Domain:
         (n_local_nodes, 2) the vertex pair naming each dof block (module docstring).
         input_index: (n_local_nodes,) original vertex index of each dof block, -1 on edges.
         node_of_block: (n_local_nodes,) geometry node of each dof block, -1 on edges.
-        segments, pivots, landmarks, name, n_vertices, n_cells, occlusion, head_frame: as in
-        `Anatomy`.
+        segments, pivots, landmarks, name, n_vertices, n_cells, occlusion, head_frame,
+        contact: as in `Anatomy`.
     """
 
     mesh: object
@@ -53,6 +53,7 @@ class Domain:
     n_cells: int
     occlusion: np.ndarray | None = None
     head_frame: object = None   # meshes.frame.HeadFrame or None
+    contact: str = "sliding"
 
     @property
     def degree(self) -> int:
@@ -82,6 +83,17 @@ class Domain:
         """Local dof blocks (nodes) on facets with any of the given tags."""
         facets = self.facet_tags.indices[np.isin(self.facet_tags.values, list(tags))]
         return dolfinx.fem.locate_dofs_topological(self.V, self.mesh.topology.dim - 1, facets)
+
+    @property
+    def teeth_tags(self) -> list[int]:
+        """The teeth tags (`meshes.anatomy.TEETH_OFFSET`) of the segments that have teeth on
+        any rank. Collective."""
+        from meshes.anatomy import segment_tags
+
+        tags = [segment_tags(t)[1] for t in self.segments.values()]
+        mine = np.array([np.sum(self.facet_tags.values == t) for t in tags], dtype=np.int64)
+        found = self.comm.allreduce(mine, op=MPI.SUM)
+        return [t for t, f in zip(tags, found) if f > 0]
 
     def dirichlet_bcs(self):
         """Homogeneous Dirichlet conditions on fixed bone and rim."""
@@ -213,7 +225,8 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
             meta = dict(segments=anatomy.segments, pivots=anatomy.pivots,
                         landmarks=anatomy.landmarks, name=anatomy.name,
                         n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells,
-                        occlusion=anatomy.occlusion, head_frame=anatomy.head_frame)
+                        occlusion=anatomy.occlusion, head_frame=anatomy.head_frame,
+                        contact=anatomy.contact)
             cells, x = anatomy.cells, anatomy.points
             facets, values = anatomy.facets, anatomy.facet_tags
         except Exception as e:  # re-raised on every rank below

@@ -1,4 +1,11 @@
-"""Quasi-static equilibrium x(p) = argmin E_NH(x) + k/2 |x_A - x̂_A(p)|², solved with PETSc SNES.
+"""Quasi-static equilibrium, solved with PETSc SNES:
+x(p) = argmin E_NH(x) + k/2 |x_A - x̂_A(p)|² + k/2 ((x_S - x̂_S(p))·n(p))².
+
+The second penalty is the sliding contact of tissue on teeth (facets S, ``sliding_tags``):
+only the normal gap is held, ``n(p) = R(p) n₀`` each facet's rest normal turned with its
+segment (``goals.turns``: R is a DG0 tensor on the facets' cells, so df/dp = df/dg dg/dp +
+df/dR dR/dp, both analytic); the tangential motion is free. It is bilateral: the lip may not lift
+off the teeth (a closed lip at rest stays closed in a planned motion of a few mm).
 
 The energy is UFL; residual f = dE/du, Jacobian K = df/du and the goal coupling df/dg come from
 ``ufl.derivative``. The goal displacement of the active bone is ``g(p)`` (`LinearGoals`: a
@@ -57,7 +64,8 @@ __all__ = ["Equilibrium", "LinearGoals", "SolveStats"]
 class LinearGoals:
     """Goal displacements linear in p: ``g = B p`` for blendshapes B (n_local_blocks * 3,
     Np), mm per unit (paper eq. 1). The interface `Equilibrium` takes: ``n_params``,
-    ``linear``, ``goal(p)`` (n_local_blocks * 3,) and ``jacobian(p)`` (its B)."""
+    ``linear``, ``goal(p)`` (n_local_blocks * 3,) and ``jacobian(p)`` (its B); with sliding
+    facets also ``turns(p, tags)`` and ``turns_jacobian(p, tags)``."""
 
     linear = True
 
@@ -73,6 +81,15 @@ class LinearGoals:
     def jacobian(self, p) -> np.ndarray:
         return self.B
 
+    def turns(self, p, tags) -> np.ndarray:
+        """The rotation (len(tags), 3, 3) of the sliding facets with each tag at p:
+        blendshapes do not say how a surface turns, so the identity."""
+        return np.tile(np.eye(3), (len(tags), 1, 1))
+
+    def turns_jacobian(self, p, tags):
+        """d(turns)/dp (len(tags), Np, 3, 3), or None where they do not depend on p."""
+        return None
+
 
 class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
     """Owns forms, PETSc objects and the current equilibrium of one scene.
@@ -82,7 +99,9 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         goals: the goal displacement g(p) of the active vertices: `LinearGoals` (or its
             blendshape matrix (n_local_blocks * 3, Np), ghosts included), or a map with the
             same interface (e.g. `inverse.treatment.GoalMap`); zero off the active facets.
-        active_tags: facet tags held to their goals by the penalty.
+        active_tags: facet tags held to their goals by the penalty (glued).
+        sliding_tags: facet tags held to their goals in the normal direction only (tissue
+            that slides on teeth).
         material: Neo-Hookean soft tissue.
         penalty: k, kPa/mm, weight of the active-vertex penalty per unit area.
         solver: a key of `PRESETS`; any PETSc option can be overridden with
@@ -112,7 +131,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         policy: when to refactorise, bisect, hand over and give up (`fem.policy`).
     """
 
-    def __init__(self, domain: Domain, goals, active_tags,
+    def __init__(self, domain: Domain, goals, active_tags, sliding_tags=(),
                  material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
                  solver: str = "direct", options: dict | None = None,
                  prefix: str = "orthodiff_fwd_", method: str = "qn",
@@ -147,13 +166,18 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         g0 = np.asarray(self.goals.goal(np.zeros(self.n_params)))
         if g0.shape != (n_local,):
             raise InputError(f"goals must be ({n_local},) per p, got {g0.shape}")
-        # owned vertices held to a goal (checked after every solve)
+        active_tags, sliding_tags = tuple(active_tags), tuple(sliding_tags)
+        if not active_tags and not sliding_tags:
+            raise InputError("no facets are held to a goal: give active or sliding tags")
+        # owned vertices held to their goals (checked after every solve)
         self._active = np.zeros(domain.n_owned, dtype=bool)
-        blocks = domain.facet_blocks(active_tags)
-        self._active[blocks[blocks < domain.n_owned]] = True
+        if active_tags:
+            blocks = domain.facet_blocks(active_tags)
+            self._active[blocks[blocks < domain.n_owned]] = True
         v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
         F = ufl.Identity(3) + ufl.grad(self.u)
-        ds = domain.ds()(tuple(active_tags), metadata={"quadrature_degree": quadrature_degree})
+        ds = domain.ds()
+        md = {"quadrature_degree": quadrature_degree}
         gap = self.u - self.goal
         # material and penalty are constants, not numbers: the forms compile once for all
         mu, lmbda, k = (dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(v))
@@ -161,13 +185,30 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         qd = 2 * (domain.degree - 1) if volume_quadrature_degree is None else \
             volume_quadrature_degree
         dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
-        energy = (material.energy_density(F, mu, lmbda) * dx
-                  + 0.5 * k * ufl.inner(gap, gap) * ds)
+        contact = 0
+        if active_tags:
+            contact = 0.5 * k * ufl.inner(gap, gap) * ds(active_tags, metadata=md)
+        self.turn = None   # R(p) on the sliding facets' cells
+        self._sliding_tags = sliding_tags
+        if sliding_tags:
+            self._setup_turns(sliding_tags)
+            n = ufl.dot(self.turn, ufl.FacetNormal(domain.mesh))
+            contact = contact + 0.5 * k * ufl.inner(gap, n) ** 2 * ds(sliding_tags, metadata=md)
+        energy = material.energy_density(F, mu, lmbda) * dx + contact
         residual = ufl.derivative(energy, self.u, v)
         jacobian = ufl.derivative(residual, self.u, du)
-        coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant
+        coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant when glued
         self.ufl_forms = dict(energy=energy, residual=residual, jacobian=jacobian,
-                              coupling=coupling)   # also for peers (``bench.py peers``)
+                              coupling=coupling,   # also for peers (``bench.py peers``)
+                              contact=ufl.derivative(contact, self.u, v))
+        if self.turn is not None:   # df/dR, for df/dp = df/dg dg/dp + df/dR dR/dp
+            self.ufl_forms["turn_coupling"] = ufl.derivative(
+                residual, self.turn, ufl.TrialFunction(self.turn.function_space))
+            # per cell: the sliding facets' ∫ ((u - g)·n)² ds and their area (the gap check)
+            w = ufl.TestFunction(compat.scalar_space(domain.mesh))
+            sliding_ds = ds(sliding_tags, metadata=md)
+            self.ufl_forms["normal_gap"] = ufl.inner(gap, n) ** 2 * w * sliding_ds
+            self.ufl_forms["sliding_area"] = w * sliding_ds
         self.forms = {k: compat.form(f) for k, f in self.ufl_forms.items()}
         self.bcs = domain.dirichlet_bcs()
         self.A = compat.create_matrix(self.forms["jacobian"])
@@ -175,11 +216,14 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self.A.setOption(PETSc.Mat.Option.SYMMETRY_ETERNAL, True)
         self.b = compat.create_vector(self.forms["residual"])
         self._set_near_nullspace()
-        G = compat.create_matrix(self.forms["coupling"])
-        compat.assemble_matrix(G, self.forms["coupling"])
-        G.assemble()
-        self.dfdg = G
-        self._dfdp = [G.createVecLeft() for _ in range(self.n_params)]
+        self.dfdg = compat.create_matrix(self.forms["coupling"])
+        self.dfdR = None if self.turn is None else \
+            compat.create_matrix(self.forms["turn_coupling"])
+        if self.turn is not None:
+            self._sliding_area = self._cell_sums("sliding_area")
+        self.set_params(np.zeros(self.n_params))
+        self._assemble_couplings()
+        self._dfdp = [self.dfdg.createVecLeft() for _ in range(self.n_params)]
         self._dfdp_at = None   # the p of self._dfdp
         self.shift_max, self.shift_retry = shift_max, shift_retry
         self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
@@ -215,9 +259,26 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._det_F = compat.eval_expression(ufl.det(F), pts, domain.mesh)
         self.setup_time = time.perf_counter() - t0
 
+    def _setup_turns(self, tags):
+        """The DG0 rotation field of the sliding facets' cells, and the dof blocks of each
+        tag's cells."""
+        domain = self.domain
+        tdim = domain.mesh.topology.dim
+        self.turn = dolfinx.fem.Function(compat.tensor_space(domain.mesh), name="turn")
+        f2c = domain.mesh.topology.connectivity(tdim - 1, tdim)
+        cell_block = self.turn.function_space.dofmap.list.array
+        self._turn_blocks = []
+        for tag in tags:
+            facets = domain.facet_tags.indices[domain.facet_tags.values == tag]
+            cells = np.array([f2c.links(f)[0] for f in facets], dtype=np.int64)
+            self._turn_blocks.append(cell_block[cells])
+        self._R = np.tile(np.eye(3), (len(tags), 1, 1))
+
     def destroy(self):
         self._invalidate()
         self._drop_qn_snes()
         for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self._obj_x, self._w, self._r, self.u_eq, self.dfdg, *self._dfdp]:
-            obj.destroy()
+                    self._x, self._obj_x, self._w, self._r, self.u_eq, self.dfdg, self.dfdR,
+                    *self._dfdp]:
+            if obj is not None:
+                obj.destroy()

@@ -240,6 +240,8 @@ class Factorisation:
 
     def _invalidate(self):
         self._K_ready = False
+        if self.turn is not None:   # df/dp depends on u where tissue slides
+            self._dfdp_at = None
         for v in self._sens or []:
             v.destroy()
         self._sens = None

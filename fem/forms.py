@@ -29,20 +29,87 @@ class Forms:
 
     @property
     def dfdp(self) -> list:
-        """df/dp at the equilibrium's p: Np PETSc vectors (df/dg) dg/dp_i, mN per unit,
-        recomputed when p has changed (and g is not linear). Active and Dirichlet vertices
-        are disjoint (checked by `Anatomy.validate`), so Dirichlet rows are zero."""
-        if self._dfdp_at is None or not (self.goals.linear
-                                         or np.array_equal(self._dfdp_at, self.p)):
-            J = self.goals.jacobian(self.p)
+        """df/dp at the equilibrium: Np PETSc vectors (df/dg) dg/dp_i + (df/dR) dR/dp_i, mN per
+        unit, recomputed when the equilibrium has changed (only its p matters where the
+        goals are linear and nothing slides: then df/dg is constant and there is no R).
+        Active and Dirichlet vertices are disjoint (checked by `Anatomy.validate`), so
+        Dirichlet rows are zero."""
+        constant = self.goals.linear and self.turn is None
+        if self._dfdp_at is None or not (constant or np.array_equal(self._dfdp_at, self.p)):
+            dR = None
+            if self.turn is not None:
+                self._assemble_couplings(at_equilibrium=True)
+                dR = self.goals.turns_jacobian(self.p, self._sliding_tags)
             g = compat.petsc_vec(self.goal).duplicate()
-            for i, y in enumerate(self._dfdp):
+            r = compat.petsc_vec(self.turn).duplicate() if dR is not None else None
+            tmp = g.duplicate()
+            for i, (y, J) in enumerate(zip(self._dfdp, self.goals.jacobian(self.p).T)):
                 with g.localForm() as gl:
-                    gl.array[:] = J[:, i]
+                    gl.array[:] = J
                 self.dfdg.mult(g, y)
-            g.destroy()
+                if dR is not None:
+                    with r.localForm() as rl:
+                        self._fill_turns(rl.array, dR[:, i])
+                    self.dfdR.mult(r, tmp)
+                    y.axpy(1.0, tmp)
+            for v in (g, r, tmp):
+                if v is not None:
+                    v.destroy()
             self._dfdp_at = self.p.copy()
         return self._dfdp
+
+    def _fill_turns(self, array: np.ndarray, mats: np.ndarray):
+        """Write one 3×3 per sliding tag, ``mats`` (n_tags, 3, 3), into a DG0 tensor array
+        (local, ghosts included) at the cells of that tag's facets; zero elsewhere."""
+        vals = array.reshape(-1, 9)
+        vals[:] = 0.0
+        for blocks, m in zip(self._turn_blocks, mats):
+            vals[blocks] = m.ravel()
+
+    def _saved(self):
+        """(u, goal, turn) arrays to restore after an evaluation elsewhere."""
+        return (self._uvec.copy(), self.goal.x.array.copy(),
+                None if self.turn is None else (self.turn.x.array.copy(), self._R.copy()))
+
+    def _restore(self, saved):
+        u, self.goal.x.array[:], turn = saved
+        if turn is not None:
+            self.turn.x.array[:], self._R = turn
+        self._set_state(u)
+        u.destroy()
+        self._obj_val = None
+
+    def _assemble_couplings(self, at_equilibrium: bool = False):
+        """df/dg (and df/dR where tissue slides) into `dfdg` (`dfdR`), at the state u and the
+        goals set (``at_equilibrium``: at the equilibrium's u and p; both are restored)."""
+        saved = None
+        if at_equilibrium:
+            saved = self._saved()
+            self._set_params_only(self.p)
+            self._set_state(self.u_eq)
+        try:
+            for M, name in ((self.dfdg, "coupling"), (self.dfdR, "turn_coupling")):
+                if M is not None:
+                    M.zeroEntries()
+                    compat.assemble_matrix(M, self.forms[name])
+                    M.assemble()
+        finally:
+            if saved is not None:
+                self._restore(saved)
+
+    def _contact_load(self, p, x: PETSc.Vec) -> PETSc.Vec:
+        """The penalties' residual f_c(x; p) as a new vector, mN (the goals are restored)."""
+        saved = self._saved()
+        try:
+            self._set_params_only(p)
+            self._set_state(x)
+            out = self.b.duplicate()
+            out.set(0.0)
+            compat.assemble_vector(out, self.forms["contact"])
+            out.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+            return out
+        finally:
+            self._restore(saved)
 
     def _set_state(self, x):
         x.copy(self._uvec)
@@ -105,33 +172,54 @@ class Forms:
         return out
 
     def set_params(self, p) -> np.ndarray:
-        """Validate p (Np,) and set the goal field g = B p."""
+        """Validate p (Np,) and set the goal field g(p) (and the sliding facets' turns R(p))."""
         p = np.asarray(p, dtype=float).reshape(-1)
         if p.shape != (self.n_params,):
             raise InputError(f"expected {self.n_params} parameters, got {p.size}")
         if not np.all(np.isfinite(p)):
             raise InputError(f"parameters must be finite, got {p.tolist()}")
-        self.goal.x.array[:] = self.goals.goal(p)
+        self._set_params_only(p)
         self._obj_val = None   # the energy depends on the goal
         return p
+
+    def _set_params_only(self, p):
+        self.goal.x.array[:] = self.goals.goal(p)
+        if self.turn is not None:
+            self._R = np.asarray(self.goals.turns(p, self._sliding_tags), dtype=float)
+            self._fill_turns(self.turn.x.array, self._R)
+            self.turn.x.scatter_forward()
 
     def coupling_transpose(self, lam: PETSc.Vec) -> np.ndarray:
         """(df/dp)ᵀ λ, shape (Np,) (collective). With λ = K⁻¹ ∂T/∂x, dT/dp = -(df/dp)ᵀ λ."""
         return np.array([g.dot(lam) for g in self.dfdp])
 
     def _goal_load(self, p) -> PETSc.Vec:
-        """-(df/dg) (g(p) - g(p0)) as a new vector, mN: the exact load of moving the goals
-        from the equilibrium's p0 to p (for linear goals, the tangent load -df/dp dp)."""
-        dg = compat.petsc_vec(self.goal).duplicate()
-        with dg.localForm() as gl:
-            gl.array[:] = self.goals.goal(self.p) - self.goals.goal(p)
-        out = self.dfdg.createVecLeft()
-        self.dfdg.mult(dg, out)
-        dg.destroy()
+        """f_c(u_eq; p0) - f_c(u_eq; p) as a new vector, mN: the exact load of moving the
+        goals (and the sliding facets' normals) from the equilibrium's p0 to p, with f_c the
+        penalties' residual (for linear goals and glued tissue, the tangent load -df/dp dp)."""
+        out = self._contact_load(self.p, self.u_eq)
+        moved = self._contact_load(p, self.u_eq)
+        out.axpy(-1.0, moved)
+        moved.destroy()
+        return out
+
+    def _cell_sums(self, name: str) -> np.ndarray:
+        """A form of one DG0 test function assembled at the state u: (owned cells' dofs,)."""
+        vec = compat.create_vector(self.forms[name])
+        vec.set(0.0)
+        compat.assemble_vector(vec, self.forms[name])
+        vec.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+        out = vec.array_r.copy()
+        vec.destroy()
         return out
 
     def active_goal_error(self) -> float:
-        """max over active vertices of |u - g|, mm (collective)."""
+        """max over active vertices of |u - g|, and over the cells on sliding facets of the
+        root mean square of (u - g)·n on them, mm (collective)."""
         gap = (self.u.x.array - self.goal.x.array).reshape(-1, 3)[:self.domain.n_owned]
         local = np.linalg.norm(gap[self._active], axis=1).max(initial=0.0)
+        if self.turn is not None:   # the root mean square over each cell's sliding facets
+            on = self._sliding_area > 0
+            rms = np.sqrt(self._cell_sums("normal_gap")[on] / self._sliding_area[on])
+            local = max(local, rms.max(initial=0.0))
         return self.domain.comm.allreduce(local, op=MPI.MAX)

@@ -13,7 +13,6 @@ import time
 
 import numpy as np
 
-from fem import compat
 from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
 from meshes.errors import SolverError
 
@@ -264,8 +263,10 @@ class NonlinearSolves:
         self.set_params(p)
         self._shift = 0.0
         load = self._load(p - p_from)
-        total = load.duplicate()
-        self.dfdg.mult(compat.petsc_vec(self.goal), total)
+        zero = load.duplicate()
+        zero.set(0.0)
+        total = self._contact_load(p, zero)   # the goals' whole load at rest
+        zero.destroy()
         # no load: refining the current equilibrium to a tighter xtol, where only steps count
         self._f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
         load.destroy()

@@ -64,8 +64,8 @@ class PathFollowing:
             # nonlinear goals: the tissue's response to the exact goals at p (one solve
             # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
             # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
-            step = self.tangent_step(p - self.p, None if self.goals.linear
-                                     else self._goal_load(p))
+            step = self.tangent_step(p - self.p, None if self.goals.linear and
+                                     self.turn is None else self._goal_load(p))
         except SolverError:
             return None
         try:
@@ -164,8 +164,9 @@ class PathFollowing:
         prediction; the scene's equilibrium (p, u) is unchanged. x must not invert an
         element. ``resume``: keep the
         L-BFGS pairs of the previous relax, if no solve came between (a continuation along
-        a path: pairs y = F(x + s) - F(x) do not depend on p, the penalty being quadratic,
-        and recent ones hold the curvature near x). Collective."""
+        a path: pairs y = F(x + s) - F(x) do not depend on p, the glued penalty being
+        quadratic, and recent ones hold the curvature near x; a sliding penalty's turns with
+        n(p), by the few degrees of a substep). Collective."""
         p = self.set_params(p)
         self._stats = SolveStats()
         t0 = time.perf_counter()

@@ -21,8 +21,12 @@ from fem.forms import DEFAULT_PENALTY
 from fem.io import write_xdmf
 from fem.material import NeoHookean
 from inverse.treatment import Treatment, rigid_treatment
+from meshes.anatomy import segment_tags
 from meshes.errors import InputError
 from meshes.synthetic import synthetic_head
+
+#: How the tissue holds to the teeth (`Scene`'s ``contact``).
+CONTACTS = ("sliding", "glued")
 
 
 class Scene:
@@ -38,6 +42,11 @@ class Scene:
             Every segment is held to its goal; one that no parameter moves stays put.
         linear, groups: for the default treatment: the paper's linearised blendshapes instead
             of exact rigid motions; with the group motions (maxilla.*, jaws.*).
+        contact: how the tissue holds to the teeth (`meshes.anatomy.TEETH_OFFSET` facets):
+            "sliding" (only the normal gap is held: the lips slide on the teeth), "glued"
+            (held like the rest of the segment, the paper's model) or None (default: the
+            anatomy's ``contact`` where it has teeth, else glued: a CT scene's teeth slide,
+            a synthetic head's are glued).
         degree: Lagrange degree of the displacement, 1 (default) or 2.
         material, penalty (kPa/mm), solver (preset name), options (PETSc options), and
             ``newton`` (dict: xtol, frtol, max_it, ...): passed to `fem.equilibrium.Equilibrium`.
@@ -51,7 +60,8 @@ class Scene:
                  groups: bool = True, material: NeoHookean = NeoHookean(),
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
                  options: dict | None = None, newton: dict | None = None,
-                 degree: int = 1, comm: MPI.Comm = MPI.COMM_WORLD):
+                 contact: str | None = None, degree: int = 1,
+                 comm: MPI.Comm = MPI.COMM_WORLD):
         t0 = time.perf_counter()
         self.domain = create_domain(anatomy, comm, degree=degree)
         self.timings = {"mesh": time.perf_counter() - t0}
@@ -69,10 +79,19 @@ class Scene:
         if self.domain.head_frame is not None:   # the motions' axes are the head's
             treatment = treatment.in_frame(self.domain.head_frame.matrix)
         self.treatment = treatment.subset(params_used) if params_used else treatment
+        if contact not in (None, *CONTACTS):
+            raise InputError(f"contact must be one of {list(CONTACTS)}, got {contact!r}")
+        teeth = self.domain.teeth_tags
+        if contact == "sliding" and not teeth:
+            raise InputError(f"anatomy {self.domain.name!r} has no teeth facets for the lips "
+                             "to slide on: use contact 'glued'")
+        self.contact = contact or (self.domain.contact if teeth else "glued")
+        sliding = teeth if self.contact == "sliding" else []
+        glued = [t for s in self.domain.segments.values() for t in segment_tags(s)
+                 if t not in sliding]
         t0 = time.perf_counter()
-        self.eq = Equilibrium(self.domain, self.treatment.goal_map(self.domain),
-                              list(self.domain.segments.values()),
-                              material=material, penalty=penalty, solver=solver,
+        self.eq = Equilibrium(self.domain, self.treatment.goal_map(self.domain), glued,
+                              sliding, material=material, penalty=penalty, solver=solver,
                               options=options, **(newton or {}))
         self.timings["compile"] = time.perf_counter() - t0
         self._landmark_op = self.domain.point_operator(list(self.domain.landmarks))
@@ -128,9 +147,10 @@ class Scene:
     def motion_report(self) -> dict:
         """Report keys of the current equilibrium's bone motions: ``transforms`` {segment:
         4×4} and ``occlusion`` (4×4, or None when the jaws are free), both in the scene's
-        frame, and the head frame they were built in (`meshes.frame.HeadFrame.report`)."""
+        frame, the head frame they were built in (`meshes.frame.HeadFrame.report`), and
+        ``contact`` (how the tissue held to the teeth)."""
         return {"transforms": self.transforms(), "occlusion": self.treatment.occlusion,
-                **self.head_frame.report()}
+                "contact": self.contact, **self.head_frame.report()}
 
     def params_from_transforms(self, transforms: dict) -> np.ndarray:
         """The parameters (Np,) that move the segments by ``transforms`` ({segment: 4×4};

@@ -54,6 +54,7 @@ import re
 
 import numpy as np
 
+from meshes.anatomy import segment_tags
 from meshes.errors import InputError
 from meshes.transforms import rigid
 
@@ -351,11 +352,15 @@ class GoalMap:
         self.treatment, self.pivots = treatment, dict(domain.pivots)
         self.n_params = len(treatment.params)
         self._X = domain.X
-        self._blocks = {s: domain.facet_blocks([tag]) for s, tag in domain.segments.items()}
+        self._blocks = {s: domain.facet_blocks(segment_tags(tag))
+                        for s, tag in domain.segments.items()}
         self.linear = all(p.kind != "rigid" for p in treatment.params)
         nodes = treatment.node_pivots(self.pivots)
         n = len(domain.X)
         B = np.zeros((n, 3, self.n_params))
+        self._tag_segment = {t: s for s, tag in domain.segments.items()
+                             for t in segment_tags(tag)}
+        self._turns = []   # (parameter, axis (3,) per unit, segments) of linearised rotations
         for i, par in enumerate(treatment.params):
             if par.kind == "rigid":
                 continue
@@ -364,9 +369,12 @@ class GoalMap:
             if missing and not (par.segment in GROUPS and len(missing) < len(members)):
                 raise InputError(f"segment(s) {missing} of {par.name!r} not in the mesh "
                                  f"(segments: {list(domain.segments)})")
-            blocks = domain.facet_blocks([domain.segments[m] for m in members
-                                          if m in domain.segments])
+            blocks = domain.facet_blocks([t for m in members if m in domain.segments
+                                          for t in segment_tags(domain.segments[m])])
             B[blocks, :, i] = par.values(domain.X[blocks], nodes[par.segment], treatment.axes)
+            if par.kind == "linear" and MOTIONS[par.motion][0] == "rotation":
+                axis = treatment.axes[:, MOTIONS[par.motion][1]]
+                self._turns.append((i, np.deg2rad(1.0) * axis, members))
         self._B = B.reshape(n * 3, -1)
         if not self.linear:
             treatment.transforms(np.zeros(self.n_params), self.pivots)   # validates segments
@@ -391,6 +399,39 @@ class GoalMap:
             X = self._X[self._blocks[s]]
             J[self._blocks[s]] += np.einsum("kj,pij->kip", X, d[:, :3, :3]) + d[:, :3, 3].T
         return J.reshape(-1, self.n_params)
+
+    def turns(self, p, tags) -> np.ndarray:
+        """The rotation (len(tags), 3, 3) at p of the segment whose facets (or teeth) carry
+        each tag: ``R`` of its rigid motion, plus ``θ [a]×`` for each linearised rotation θ
+        about a that moves it."""
+        out = np.tile(np.eye(3), (len(tags), 1, 1))
+        segs = [self._tag_segment[t] for t in tags]
+        if not self.linear:
+            T = self.treatment.transforms(p, self.pivots)
+            out[:] = [T[s][:3, :3] for s in segs]
+        for i, a, members in self._turns:
+            for j, s in enumerate(segs):
+                if s in members:
+                    out[j] += p[i] * _cross_matrix(a)
+        return out
+
+    def turns_jacobian(self, p, tags) -> np.ndarray:
+        """d(turns)/dp (len(tags), Np, 3, 3) per unit."""
+        segs = [self._tag_segment[t] for t in tags]
+        out = np.zeros((len(tags), self.n_params, 3, 3))
+        if not self.linear:
+            _, dT = self.treatment.transforms(p, self.pivots, derivatives=True)
+            out[:] = [dT[s][:, :3, :3] for s in segs]
+        for i, a, members in self._turns:
+            for j, s in enumerate(segs):
+                if s in members:
+                    out[j, i] += _cross_matrix(a)
+        return out
+
+
+def _cross_matrix(a: np.ndarray) -> np.ndarray:
+    """[a]× (3, 3): [a]× v = a × v."""
+    return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
 
 
 def _number_in(value, param: "Param") -> float:

@@ -19,9 +19,12 @@ import numpy as np
 from meshes.errors import MeshError
 from meshes.frame import HeadFrame
 
-#: Facet tag values of the boundary roles. Segment tags are ``SEGMENT_TAG0 + i``.
+#: Facet tag values of the boundary roles. Segment tags are ``SEGMENT_TAG0 + i``; the teeth
+#: of a segment (its facets where the tissue may slide, `fem.equilibrium`) are tagged
+#: ``segment tag + TEETH_OFFSET``.
 SKIN, FIXED, FREE_BONE, RIM = 1, 2, 3, 4
 SEGMENT_TAG0 = 11
+TEETH_OFFSET = 20
 ROLE_NAMES = {SKIN: "skin", FIXED: "fixed", FREE_BONE: "free_bone", RIM: "rim"}
 #: Facets held by a Dirichlet condition (u = 0).
 DIRICHLET_TAGS = (FIXED, RIM)
@@ -54,8 +57,10 @@ class Anatomy:
         points: (N, 3) vertex positions, mm.
         cells: (M, 4) vertex indices of positively oriented tetrahedra.
         facets: (F, 3) vertex indices of tagged boundary facets.
-        facet_tags: (F,) tag per facet: SKIN, FIXED, FREE_BONE, RIM or a segment tag.
-        segments: segment name -> facet tag (e.g. ``{"mandible": 11}``).
+        facet_tags: (F,) tag per facet: SKIN, FIXED, FREE_BONE, RIM, a segment tag or a
+            segment's teeth tag (segment tag + `TEETH_OFFSET`).
+        segments: segment name -> facet tag (e.g. ``{"mandible": 11}``); its teeth, if it
+            has any, are tagged ``11 + TEETH_OFFSET``.
         pivots: segment name -> (3,) pivot of its rigid motions, mm.
         landmarks: landmark name -> `Landmark` on a skin facet.
         name: case name or source file, for reports.
@@ -63,6 +68,9 @@ class Anatomy:
             brings the teeth into the final occlusion (`inverse.treatment`), scene frame.
         head_frame: optional `meshes.frame.HeadFrame` (head frame -> scene frame); None:
             the scene's frame is the head's (the synthetic heads).
+        contact: how its tissue holds to its teeth unless a scene says otherwise,
+            "sliding" or "glued" (`inverse.scene.Scene`; the synthetic heads: glued,
+            docs/decisions.md).
     """
 
     points: np.ndarray
@@ -75,6 +83,7 @@ class Anatomy:
     name: str = "anatomy"
     occlusion: np.ndarray | None = None
     head_frame: HeadFrame | None = None
+    contact: str = "sliding"
 
     @property
     def n_vertices(self) -> int:
@@ -90,8 +99,15 @@ class Anatomy:
         return {n: self.landmarks[n].position(self.points) for n in names}
 
     def segment_vertices(self, name: str) -> np.ndarray:
-        """Sorted vertex indices on the facets of segment ``name``."""
-        return np.unique(self.facets[self.facet_tags == self.segments[name]])
+        """Sorted vertex indices on the facets of segment ``name``, its teeth included."""
+        return np.unique(self.facets[np.isin(self.facet_tags,
+                                             segment_tags(self.segments[name]))])
+
+    @property
+    def teeth_tags(self) -> list[int]:
+        """The teeth tags of the segments that have teeth."""
+        return [t + TEETH_OFFSET for t in self.segments.values()
+                if np.any(self.facet_tags == t + TEETH_OFFSET)]
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> "Anatomy":
@@ -156,8 +172,16 @@ class Anatomy:
                                 "skin, fixed bone and at least one active segment")
         if not self.segments:
             raise MeshError("no active bone segment is defined")
+        if self.contact not in ("sliding", "glued"):
+            raise MeshError(f"contact must be 'sliding' or 'glued', got {self.contact!r}")
+        known = set(ROLE_NAMES) | {x for tag in self.segments.values()
+                                   for x in segment_tags(tag)}
+        unknown = sorted(set(np.unique(t).tolist()) - known)
+        if unknown:
+            raise MeshError(f"facet tag(s) {unknown} are neither a role {sorted(ROLE_NAMES)} "
+                            "nor a segment's (or its teeth's)")
         for name, tag in self.segments.items():
-            if not np.any(t == tag):
+            if not np.any(np.isin(t, segment_tags(tag))):
                 raise MeshError(f"segment {name!r} (tag {tag}) has no facets")
             if name not in self.pivots:
                 self.pivots[name] = self.points[self.segment_vertices(name)].mean(axis=0)
@@ -187,6 +211,7 @@ class Anatomy:
                 "occlusion": None if self.occlusion is None else
                 np.asarray(self.occlusion).tolist(),
                 "head_frame": None if self.head_frame is None else self.head_frame.report(),
+                "contact": self.contact,
                 "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
                 "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
                               for k, v in self.landmarks.items()}}
@@ -212,9 +237,15 @@ class Anatomy:
                            name=meta["name"],
                            occlusion=None if meta.get("occlusion") is None else
                            np.array(meta["occlusion"], dtype=float),
-                           head_frame=HeadFrame.from_report(meta.get("head_frame")))
+                           head_frame=HeadFrame.from_report(meta.get("head_frame")),
+                           contact=meta.get("contact", "sliding"))
         except (OSError, KeyError, ValueError) as e:
             raise MeshError(f"cannot read anatomy file {path}: {e}") from e
+
+
+def segment_tags(tag: int) -> tuple[int, int]:
+    """The facet tags of a segment whose tag is ``tag``: (its bone, its teeth)."""
+    return tag, tag + TEETH_OFFSET
 
 
 def signed_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:

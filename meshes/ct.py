@@ -8,7 +8,8 @@ Stages, each with the well-kept library for it:
    label), sized per resolution (`CGAL_SIZING`);
 4. **classify** each boundary facet by the label just outside it: skin (air), bone, crop
    (held: `RIM`) or free (air inside the head, a free crop face: no tag, traction-free); bone
-   facets by the osteotomy planes (`meshes.osteotomy`);
+   facets by the osteotomy planes (`meshes.osteotomy`), and the segments' teeth and
+   vestibule by HU (`meshes.teeth`);
 5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), built in
    the head frame (`meshes.frame`: given by the scene file's ``frame``, or estimated on the
    whole CT before the crop), or from a file.
@@ -54,6 +55,7 @@ from meshes.frame import from_spec
 from meshes.landmarks import skin_landmarks
 from meshes.osteotomy import Osteotomies, Plane
 from meshes.synthetic import RESOLUTIONS, cache_dir
+from meshes.teeth import ct_teeth, tag_teeth
 from meshes.volume import Volume, read_volume
 
 log = logging.getLogger(__name__)
@@ -113,10 +115,10 @@ def _digest(path: Path) -> str:
 def _code_digest() -> str:
     """The pipeline's own source: a cached scene is rebuilt when the code that made it
     changes (the synthetic heads bump `GENERATOR_VERSION` by hand; here no hand is needed)."""
-    from meshes import anatomy, frame, landmarks, osteotomy, segment, volume
+    from meshes import anatomy, frame, landmarks, osteotomy, segment, teeth, volume
 
     h = hashlib.sha1()
-    for module in (anatomy, frame, landmarks, osteotomy, segment, volume):
+    for module in (anatomy, frame, landmarks, osteotomy, segment, teeth, volume):
         h.update(Path(module.__file__).read_bytes())
     h.update(Path(__file__).read_bytes())
     return h.hexdigest()
@@ -300,6 +302,12 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     moving = np.isin(tags, list(segments.values()))
     tags[moving & near_crop] = FREE_BONE
     _widen_bands(points, facets, tags, list(segments.values()), cuts.band_mm / 2)
+    if not is_map:   # a label map has no HU to tell teeth by
+        moving = np.isin(tags, list(segments.values()))
+        teeth = np.zeros(len(facets), dtype=bool)
+        teeth[moving] = ct_teeth(volume.at, mid[moving], normals[moving],
+                                 float(volume.spacing.min()), cuts.occlusal)
+        tags = tag_teeth(points, facets, tags, segments, teeth)
     for name, tag in segments.items():
         if not np.any(tags == tag):
             raise MeshError(f"segment {name!r} has no facets: the osteotomy planes leave no "

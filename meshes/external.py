@@ -8,6 +8,10 @@ Two paths, both ending in a validated `Anatomy`:
        {"facet_data": "tag",                     # name of the triangle cell-data array
         "roles": {"skin": 1, "fixed": 2, "free_bone": 3, "rim": 4},   # file values
         "segments": {"mandible": 11, "maxilla_L": 12, "maxilla_R": 13},
+        "teeth": {"mandible": 31},               # optional: a segment's facets where the
+                                                 # tissue slides (`meshes.teeth`)
+        "contact": "sliding",                    # optional: or "glued", the default of
+                                                 # scenes on this mesh
         "pivots": {"mandible": [0, 55, -60]},     # optional, mm; default segment centroid
         "occlusion": [[4x4]] or "occlusion.tfm", # optional: the final occlusion, the
                                                  # mandible's motion relative to the maxilla
@@ -44,6 +48,7 @@ from meshes.anatomy import (
     Anatomy,
     Landmark,
     boundary_facets,
+    segment_tags,
 )
 from meshes.errors import MeshError
 
@@ -167,6 +172,11 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
     for j, (name, value) in enumerate(spec.get("segments", {}).items()):
         segments[name] = SEGMENT_TAG0 + j
         tags[file_tags == value] = SEGMENT_TAG0 + j
+    for name, value in spec.get("teeth", {}).items():
+        if name not in segments:
+            raise MeshError(f"teeth of {name!r} in {sidecar}, which is not a segment "
+                            f"({list(segments)})")
+        tags[file_tags == value] = segment_tags(segments[name])[1]
     facets = np.concatenate(tris).astype(np.int64)
     keep = tags != 0
     facets, tags = facets[keep], tags[keep]
@@ -175,7 +185,8 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
                       {k: np.asarray(v, float) for k, v in spec.get("pivots", {}).items()},
                       {}, name=Path(path).name,
                       occlusion=read_occlusion(spec.get("occlusion"), sidecar),
-                      head_frame=_head_frame(spec, sidecar))
+                      head_frame=_head_frame(spec, sidecar),
+                      contact=spec.get("contact", "sliding"))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
@@ -265,7 +276,10 @@ def write_tet_mesh(anatomy: Anatomy, path) -> list:
                                           anatomy.facet_tags.astype(np.int32)]})
     mesh.write(path)
     sidecar = Path(str(path) + ".json")
+    teeth = {n: segment_tags(t)[1] for n, t in anatomy.segments.items()
+             if segment_tags(t)[1] in anatomy.teeth_tags}
     spec = {"facet_data": "tag", "roles": dict(ROLE_TAGS), "segments": anatomy.segments,
+            "teeth": teeth, "contact": anatomy.contact,
             "pivots": {k: np.asarray(v).tolist() for k, v in anatomy.pivots.items()},
             "landmarks": {k: {"facet": np.asarray(v.facet).tolist(),
                               "weights": np.asarray(v.weights).tolist()}

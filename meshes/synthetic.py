@@ -45,10 +45,11 @@ from meshes.anatomy import (
 )
 from meshes.errors import InputError, MeshError
 from meshes.osteotomy import BAND_MM, SEGMENT_TAGS, SPLIT_MM, Osteotomies, axis_plane
+from meshes.teeth import CROWN_MM, VESTIBULE_MM, tag_teeth
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4   # 4: the teeth label (`meshes.teeth`)
 Z_LEFORT, Z_OCCLUSAL, Y_BSSO = -15.0, -38.0, 20.0
 #: Z_LEFORT: the LeFort I cut runs below the piriform rim, 4 mm above subnasale (z = -19),
 #: so the nose sits on bone that does not move. With the cut at -6 mm (through the nasal
@@ -57,6 +58,12 @@ Z_LEFORT, Z_OCCLUSAL, Y_BSSO = -15.0, -38.0, 20.0
 #: subnasale 0.57, upper lip 0.62 (class1, coarse; BENCHMARKS.md, plausibility). At -18 mm
 #: subnasale fell to 0.48, below its published 0.5-0.9.
 Y_MASK, Z_MASK = -12.0, 50.0
+#: The synthetic heads' tissue is glued to their teeth unless a scene says otherwise: their
+#: maxilla is 22 mm tall, so its teeth and vestibule cover all of it below the cut's free
+#: band, and sliding, a 5 mm LeFort I advance brought subnasale 0.34 and the nasal tip 0.05
+#: of it forward (published 0.5-0.9 and 0.13-0.33); glued, 0.57 and 0.20 (class1, coarse;
+#: docs/decisions.md).
+SYNTHETIC_CONTACT = "glued"
 #: Target edge length (mm) per resolution; vertex counts are measured in BENCHMARKS.md.
 RESOLUTIONS = {"tiny": 8.0, "coarse": 5.5, "medium": 4.0, "paper": 2.3, "fine": 1.4}
 
@@ -150,6 +157,17 @@ def _distances(case: Case, points: np.ndarray):
     return d_skin, np.min([e.distance(points) for e, _ in bone], axis=0)
 
 
+def _teeth(case: Case, mid: np.ndarray) -> np.ndarray:
+    """(F,) bool: facet midpoints ``mid`` (F, 3) within a crown height
+    (`meshes.teeth.CROWN_MM`) of their jaw's occlusal edge (the maxilla's lowest and the
+    mandible body's highest point), where the dental arches stand."""
+    bone = _primitives(case)[0]
+    edge = {"maxilla": bone[1][0].c[2] - bone[1][0].r[2],
+            "mandible": bone[2][0].c[2] + bone[2][0].r[2]}
+    return ((mid[:, 2] <= edge["maxilla"] + CROWN_MM["maxilla"]) &
+            (mid[:, 2] >= edge["mandible"] - CROWN_MM["mandible"]))
+
+
 def _landmark_rays(case: Case):
     """name -> (origin, direction): the landmark is the outermost skin hit of the ray."""
     _, _, mand, Ry = _primitives(case)
@@ -230,6 +248,7 @@ def build(case_name: str, resolution: str) -> Anatomy:
     rim = (np.abs(mid[:, 1] - Y_MASK) < 1e-6) | (np.abs(mid[:, 2] - Z_MASK) < 1e-6)
     tags[rim] = RIM
     segments = dict(SEGMENT_TAGS)
+    tags = tag_teeth(points, facets, tags, segments, _teeth(case, mid))
     skin_idx = np.flatnonzero(tags == SKIN)
     landmarks = {}
     for name, (o, d) in _landmark_rays(case).items():
@@ -239,7 +258,8 @@ def build(case_name: str, resolution: str) -> Anatomy:
         landmarks[name] = Landmark(facets[skin_idx[hit[0]]], hit[1])
     _check_volume(case, points, cells, case_name)
     anatomy = Anatomy(points, cells, facets, tags, segments, {}, landmarks,
-                      name=f"{case_name}/{resolution}", occlusion=case_occlusion(case))
+                      name=f"{case_name}/{resolution}", occlusion=case_occlusion(case),
+                      contact=SYNTHETIC_CONTACT)
     anatomy.validate()
     # pivots: the centroid of each segment's rest bone vertices
     anatomy.pivots = {s: points[anatomy.segment_vertices(s)].mean(axis=0) for s in segments}
@@ -281,13 +301,14 @@ def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -
     """The synthetic anatomy of a case at a resolution, from the disk cache when present."""
     case, h = _check(case_name, resolution)
     key = hashlib.sha1(repr((GENERATOR_VERSION, case, h, Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM,
-                              SPLIT_MM))
+                              SPLIT_MM, CROWN_MM, VESTIBULE_MM))
                        .encode()).hexdigest()[:12]
     path = cache_dir() / f"{case_name}-{resolution}-{key}.npz"
     if path.exists():
         try:
             anatomy = Anatomy.load(path)
             anatomy.occlusion = case_occlusion(case)   # from the case, not the cache
+            anatomy.contact = SYNTHETIC_CONTACT
             return anatomy
         except MeshError:
             log.warning("cached mesh %s is unreadable; regenerating", path)

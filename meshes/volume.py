@@ -47,6 +47,12 @@ class Volume:
         """Voxel-centre coordinates (n_axis,) mm along one axis."""
         return self.origin[axis] + self.spacing[axis] * np.arange(self.array.shape[axis])
 
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """Values (K,) of the voxels nearest to points (K, 3) mm (clamped to the grid)."""
+        ijk = np.rint((np.asarray(points, float) - self.origin) / self.spacing).astype(int)
+        ijk = np.clip(ijk, 0, np.array(self.array.shape) - 1)
+        return self.array[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
     def crop(self, lo, hi) -> "Volume":
         """The sub-volume of the voxels whose centres lie in the box [lo, hi] (mm)."""
         sl = []

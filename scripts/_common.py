@@ -142,6 +142,11 @@ def add_scene_args(ap, plan: bool = False):
     ap.add_argument("--method", default="qn", choices=("qn", "newton"),
                     help="nonlinear method: quasi-Newton on a kept factorisation (default) "
                     "or Newton (a factorisation per step)")
+    ap.add_argument("--contact", default=None, choices=("sliding", "glued"),
+                    help="the tissue on the teeth: sliding (only the normal gap is held; the "
+                    "default of CT scenes) or glued (held like the rest of the bone, the "
+                    "paper's model; the default of the synthetic heads and of meshes without "
+                    "teeth)")
     ap.add_argument("--penalty", default=None, help="active penalty k, kPa/mm")
     ap.add_argument("--degree", type=int, default=1, choices=(1, 2),
                     help="Lagrange degree of the displacement (P2: ~7x the dofs, see BENCHMARKS)")
@@ -156,7 +161,7 @@ def scene_from_args(args, comm, plan: bool = False, groups: bool = True):
 
     kw = {"solver": args.solver, "comm": comm, "degree": args.degree,
           "newton": {"method": args.method}, "occlusion": args.occlusion,
-          "linear": args.treatment == "linear", "groups": groups}
+          "linear": args.treatment == "linear", "groups": groups, "contact": args.contact}
     if args.params_used is not None:
         kw["params_used"] = names_list(args.params_used)
         kw["groups"] = True

@@ -108,8 +108,10 @@ def check_args(args) -> None:
                 raise ValueError(f"--cases: {case!r} must be resolution:mm with a resolution "
                                  f"in {list(RESOLUTIONS)}")
             number("cases", mag, -MAX_MOVE_MM, MAX_MOVE_MM)
-    elif args.what == "plausibility" and args.cases is not None:
-        among("cases", CASES)
+    elif args.what == "plausibility":
+        if args.cases is not None:
+            among("cases", CASES)
+        among("contacts", ("glued", "sliding"))
     elif args.what == "explorer":
         number("events", args.events, 1, 10000, integer=True)
         args.events = int(args.events)
@@ -161,6 +163,7 @@ def main():
                         "clinical literature")
     pp.add_argument("--resolutions", default="coarse,paper")
     pp.add_argument("--cases", default=None, help="comma-separated (default: all)")
+    pp.add_argument("--contacts", default="glued,sliding")
     c = sub.add_parser("ct", help="the CT pipeline on the example CTs, to a plan")
     c.add_argument("--cts", default="headsq,cranium")
     c.add_argument("--resolutions", default="coarse,paper")

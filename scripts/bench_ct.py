@@ -34,6 +34,8 @@ CTS = {
 }
 MOVE_MM = 5.0
 GOAL_S = 60.0
+#: How the tissue holds to the teeth, each simulated and planned (`inverse.scene.CONTACTS`).
+CONTACTS = ("glued", "sliding")
 #: ct_scene.py's stages, in order ("frame": the head frame estimated on the whole CT).
 STAGES = ("read", "frame", "segment", "mesh", "classify", "landmarks")
 
@@ -74,7 +76,7 @@ def ct(args) -> None:
     for name in args.cts.split(","):
         ct_path, scene, param, shift, plan_params = CTS[name]
         if not ct_path.exists():
-            rows.append([name, "", f"absent: {ct_path}"] + [""] * (len(STAGES) + 5))
+            rows.append([name, "", f"absent: {ct_path}"] + [""] * (len(STAGES) + 6))
             continue
         for res in args.resolutions.split(","):
             with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
@@ -83,7 +85,7 @@ def ct(args) -> None:
                 rep = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene),
                                            "--resolution", res, "--out", out], env)
                 if "error" in rep:
-                    rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 5))
+                    rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 6))
                     continue
                 t = rep["timings_s"]
                 stages[(name, res)] = {k: t.get(k, 0.0) for k in STAGES}
@@ -96,44 +98,48 @@ def ct(args) -> None:
                 if res == "paper":
                     goals.append(goal(f"CT to a paper-size scene, {name} (ct)", t["total"],
                                       "s", limit=GOAL_S, source="issue 16"))
-                sim = _run("simulate.py", ["--mesh", rep["mesh"], "--p",
-                                           f"{param}={MOVE_MM}"], env)
                 goal_lms = [k for k in shift if k in rep["landmarks"]]
                 targets = Path(out) / "targets.json"
                 axes = np.asarray(rep["head_frame"])[:3, :3]   # the goal is the face's
                 targets.write_text(json.dumps({k: (np.asarray(rep["landmarks"][k])
                                                    + axes @ shift[k]).tolist()
                                                for k in goal_lms}))
-                plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
-                                        "--landmarks", ",".join(goal_lms), "--params-used",
-                                        plan_params], env) if goal_lms else {"error": "none"}
-            fwd = "failed" if "error" in sim else \
-                f"{sim['timings_s']['total']:.1f} ({sim['newton_iterations']})"
-            pl = plan.get("error", "")[:40] if "error" in plan else (
-                f"{plan['mean_distance_before_mm']:.2f} → {plan['mean_distance_after_mm']:.2f}"
-                f" mm, {plan['timings_s']['total']:.1f} s")
-            rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
-                         f"{rep['min_quality']:.3f}",
-                         *(f"{v:.1f}" for v in stages[(name, res)].values()),
-                         f"**{t['total']:.1f}**", fwd, pl])
-            if "error" not in sim:
-                for lm, rng, v in _ratios(sim, param):
-                    ok = rng is None or rng[0] <= v <= rng[1]
-                    ratio_rows.append([name, res, param, lm, "—" if rng is None else
-                                       f"{rng[0]:g}–{rng[1]:g}",
-                                       f"{v:.2f}" if ok else f"**{v:.2f}** ✗"])
-            print(rows[-1], flush=True)
+                for contact in CONTACTS:
+                    sim = _run("simulate.py", ["--mesh", rep["mesh"], "--contact", contact,
+                                               "--p", f"{param}={MOVE_MM}"], env)
+                    plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
+                                            "--landmarks", ",".join(goal_lms), "--contact",
+                                            contact, "--params-used", plan_params],
+                                env) if goal_lms else {"error": "none"}
+                    fwd = "failed" if "error" in sim else \
+                        f"{sim['timings_s']['total']:.1f} ({sim['newton_iterations']})"
+                    pl = plan.get("error", "")[:40] if "error" in plan else (
+                        f"{plan['mean_distance_before_mm']:.2f} → "
+                        f"{plan['mean_distance_after_mm']:.2f} mm, "
+                        f"{plan['timings_s']['total']:.1f} s")
+                    rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
+                                 f"{rep['min_quality']:.3f}",
+                                 *(f"{v:.1f}" for v in stages[(name, res)].values()),
+                                 f"**{t['total']:.1f}**", contact, fwd, pl])
+                    if "error" not in sim:
+                        for lm, rng, v in _ratios(sim, param):
+                            ok = rng is None or rng[0] <= v <= rng[1]
+                            ratio_rows.append([name, res, param, contact, lm, "—" if rng is
+                                               None else f"{rng[0]:g}–{rng[1]:g}",
+                                               f"{v:.2f}" if ok else f"**{v:.2f}** ✗"])
+                    print(rows[-1], flush=True)
     body = header("CT scenes: from a CT volume to a plan", args) + [
         "Each row: `scripts/ct_scene.py` into a fresh cache (stage times in seconds, "
         f"goal: a paper-size scene in ≤ {GOAL_S:g} s), then `scripts/simulate.py --mesh` "
         f"with a {MOVE_MM:g} mm advance of the moved bone (headsq: both jaws in the CT's "
         "occlusion, `jaws.advance_mm`; Cranium: the LeFort I, `maxilla.advance_mm`; seconds "
-        "and iterations), then `scripts/plan.py --mesh` to the CT's goal (headsq: Pg and Li "
+        "and iterations), then `scripts/plan.py --mesh` to the CT's goal, each with the tissue "
+        "glued to the teeth and sliding on them (`--contact`) (headsq: Pg and Li "
         "4 mm, Me 3 mm forward; Cranium: Sn 3 mm and Prn 0.6 mm forward; forward is the head "
         "frame's).",
         ""]
     body += table(["CT", "resolution", "vertices", "tets", "min quality", *STAGES, "total",
-                   "5 mm advance s (its)", "plan: mean distance, time"], rows)
+                   "contact", "5 mm advance s (its)", "plan: mean distance, time"], rows)
     body += ["", "The head frame of each CT (`meshes.frame`, `ct.json`): its tilt from the "
              "scanner's axes (degrees, the treatment's convention: pitch > 0 the face turned "
              "up, roll > 0 the left side down, yaw > 0 the face turned to the patient's "
@@ -148,8 +154,8 @@ def ct(args) -> None:
              "lower incisors that both advance, while the published Li range is for a BSSO "
              "alone; Cranium's field of view ends through the upper lip, whose cut bottom "
              "face is free, so nothing below holds Ls back.", ""]
-    body += table(["CT", "resolution", "treatment", "landmark", "published", "ratio"],
-                  ratio_rows)
+    body += table(["CT", "resolution", "treatment", "contact", "landmark", "published",
+                   "ratio"], ratio_rows)
 
     def draw(plt):
         plt.figure(figsize=(6, 3))

@@ -1,7 +1,8 @@
 """``bench.py plausibility``: soft-to-hard movement ratios of the synthetic faces against the
 clinical literature (issue 15 §4).
 
-For every case and resolution, two treatments from rest, each a fresh ``scripts/simulate.py``:
+For every case, resolution and contact of the tissue on the teeth (glued, sliding), two
+treatments from rest, each a fresh ``scripts/simulate.py``:
 a 5 mm BSSO advance (``mandible.advance_mm``) and a 5 mm LeFort I advance en bloc
 (``maxilla.advance_mm``). A ratio is the landmark's forward motion (+y of the head frame,
 `meshes.frame`) over the bone's 5 mm (a translation: incisors, B and A points, bony pogonion
@@ -22,20 +23,22 @@ RATIOS = [
 MOVE_MM = 5.0
 
 
-def ratios(simulate, case: str, res: str) -> dict:
-    """{(param, landmark, axis): ratio} from two simulate.py runs (``simulate(args)``)."""
+def ratios(simulate, case: str, res: str, contact: str) -> tuple[dict, dict]:
+    """({(param, landmark, axis): ratio}, {param: forward s}) from two simulate.py runs
+    (``simulate(args)``) with the tissue ``contact`` on the teeth."""
 
-    out = {}
+    out, times = {}, {}
     for param in dict.fromkeys(r[0] for r in RATIOS):
         rep = simulate(["--case", case, "--resolution", res, "--params-used",
-                        "mandible.advance_mm,maxilla.advance_mm", "--p",
+                        "mandible.advance_mm,maxilla.advance_mm", "--contact", contact, "--p",
                         f"{param}={MOVE_MM}"])
         if "error" in rep:
             raise SystemExit(f"{case}/{res} {param}: {rep['error']}")
+        times[param] = rep["timings_s"]["total"]
         for p, lm, axis, _, _ in RATIOS:
             if p == param:
                 out[(p, lm, axis)] = head_motion(rep, lm, axis) / MOVE_MM
-    return out
+    return out, times
 
 
 def head_motion(rep: dict, landmark: str, axis: int) -> float:
@@ -52,28 +55,47 @@ def plausibility(args) -> None:
     from scripts._bench import header, simulate, table, write_section
 
     cases = args.cases.split(",") if args.cases else sorted(CASES)
+    contacts = args.contacts.split(",")
     head = ["treatment", "landmark", "published", "source"]
     cols, rows = [], {i: [] for i in range(len(RATIOS))}
+    time_rows = {k: [] for k in ("BSSO 5 mm forward s", "LeFort I 5 mm forward s",
+                                 "plan to the case's goal s")}
     for res in args.resolutions.split(","):
         for case in cases:
-            cols.append(f"{case} {res}")
-            r = ratios(lambda a: simulate(res, "direct", 1, args=a), case, res)
-            for i, (p, lm, axis, rng, _) in enumerate(RATIOS):
-                v = r[(p, lm, axis)]
-                ok = rng is None or rng[0] <= v <= rng[1]
-                rows[i].append(f"{v:.2f}" if ok else f"**{v:.2f}** ✗")
-            print(res, case, {k: round(v, 2) for k, v in r.items()}, flush=True)
+            for contact in contacts:
+                cols.append(f"{case} {res} {contact}")
+                r, times = ratios(lambda a: simulate(res, "direct", 1, args=a), case, res,
+                                  contact)
+                for i, (p, lm, axis, rng, _) in enumerate(RATIOS):
+                    v = r[(p, lm, axis)]
+                    ok = rng is None or rng[0] <= v <= rng[1]
+                    rows[i].append(f"{v:.2f}" if ok else f"**{v:.2f}** ✗")
+                plan = simulate(res, "direct", 1, script="plan.py", args=[
+                    "--case", case, "--resolution", res, "--contact", contact])
+                fwd = [f"{times[p]:.1f}" for p in ("mandible.advance_mm", "maxilla.advance_mm")]
+                for key, v in zip(time_rows, fwd + [
+                        plan.get("error", "")[:30] if "error" in plan else
+                        f"{plan['timings_s']['total']:.1f}"]):
+                    time_rows[key].append(v)
+                print(res, case, contact, {k: round(v, 2) for k, v in r.items()}, fwd,
+                      flush=True)
     body = header("Plausibility: soft-to-hard movement ratios (synthetic faces)", args) + [
         "Each column: a 5 mm BSSO advance (`mandible.advance_mm=5`) and a 5 mm LeFort I "
-        "advance (`maxilla.advance_mm=5`) from rest, one `scripts/simulate.py` each; a "
-        "ratio is the soft-tissue landmark's forward motion over the bone's 5 mm (the "
-        "nasal tip's elevation on the last row). ✗: outside the published range.", "",
+        "advance (`maxilla.advance_mm=5`) from rest, one `scripts/simulate.py` each, with the "
+        "tissue on the teeth `--contact glued` (the paper's model) or `sliding` (the "
+        "default: `meshes.teeth`, docs/decisions.md); a ratio is the soft-tissue "
+        "landmark's forward motion over the bone's 5 mm (the nasal tip's elevation on the "
+        "last row). ✗: outside the published range. Below the ratios: the two advances' "
+        "times and `scripts/plan.py` to the case's built-in goal (one process each, 1 "
+        "rank).", "",
         f"Generator version {GENERATOR_VERSION}: the LeFort I cut runs below the piriform rim "
-        f"(z = {Z_LEFORT:g} mm), so the nose sits on bone that does not move. What the cut "
-        "through the nasal base (version 2) gave, and what the change did to the forward "
-        "solve and the plan: docs/decisions.md, with its command.", ""]
+        f"(z = {Z_LEFORT:g} mm), so the nose sits on bone that does not move; each jaw's "
+        "crowns and vestibule are its teeth. What the cut through the nasal base (version 2) "
+        "gave, and what the change did to the forward solve and the plan: "
+        "docs/decisions.md, with its command.", ""]
     body += table(head + cols, [
         [p.split(".")[0] + (" advance"), lm + (" up" if axis == 2 else " fwd"),
          "—" if rng is None else f"{rng[0]:g}–{rng[1]:g}", src, *rows[i]]
-        for i, (p, lm, axis, rng, src) in enumerate(RATIOS)])
+        for i, (p, lm, axis, rng, src) in enumerate(RATIOS)] + [
+        ["time", key, "", "", *vals] for key, vals in time_rows.items()])
     write_section("plausibility", "\n".join(body))

@@ -46,10 +46,13 @@ def main(argv=None):
     args, comm = parse(parser(), argv)
     import time
 
+    import numpy as np
+
     from fem.io import write_json, write_on_root
-    from meshes.anatomy import SKIN
+    from meshes.anatomy import SKIN, segment_tags
     from meshes.errors import MeshError
     from meshes.external import write_tet_mesh
+    from meshes.teeth import teeth_report
 
     t0 = time.perf_counter()
     result = None
@@ -77,8 +80,9 @@ def main(argv=None):
         timings["total"] = time.perf_counter() - t0
         report = {
             "mesh": str(mesh), "n_vertices": anatomy.n_vertices, "n_cells": anatomy.n_cells,
-            "segments": {n: int((anatomy.facet_tags == tag).sum())
+            "segments": {n: int(np.isin(anatomy.facet_tags, segment_tags(tag)).sum())
                          for n, tag in anatomy.segments.items()},
+            "teeth": teeth_report(anatomy),
             "skin_facets": int((anatomy.facet_tags == SKIN).sum()),
             "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
             "min_quality": info["min_quality"], "voxel_mm": info["voxel_mm"],

@@ -50,18 +50,34 @@ def mandible_scene(tiny_anatomy):
 
 
 @pytest.fixture(scope="session")
-def _tight_scene(tiny_anatomy):
-    scene = _mandible_only(tiny_anatomy, newton=TIGHT)
-    scene.case, scene.resolution = "class3", "tiny"
-    return scene
+def _tight_scenes(tiny_anatomy):
+    """{contact: scene} of `tight_scene`, built on first use."""
+    scenes = {}
+
+    def get(contact):
+        if contact not in scenes:
+            scenes[contact] = _mandible_only(tiny_anatomy, newton=TIGHT, contact=contact)
+            scenes[contact].case, scenes[contact].resolution = "class3", "tiny"
+        return scenes[contact]
+    return get
 
 
 @pytest.fixture
-def tight_scene(_tight_scene):
-    """class3/tiny, six mandible motions, solved by Newton to tolerances far below the
-    defaults (for rate, Taylor and finite-difference checks); back at rest afterwards."""
-    yield _tight_scene
-    _tight_scene.solve(np.zeros(6))
+def tight_scene(_tight_scenes):
+    """class3/tiny, six mandible motions, the lips sliding on the teeth (the default), solved
+    by Newton to tolerances far below the defaults (for rate, Taylor and finite-difference
+    checks); back at rest afterwards."""
+    scene = _tight_scenes("sliding")
+    yield scene
+    scene.solve(np.zeros(6))
+
+
+@pytest.fixture
+def tight_glued(_tight_scenes):
+    """`tight_scene` with the tissue glued to the teeth (the paper's model)."""
+    scene = _tight_scenes("glued")
+    yield scene
+    scene.solve(np.zeros(6))
 
 
 def _central_differences(scene, obj, p, h: float = 1e-3) -> np.ndarray:

@@ -7,7 +7,14 @@ import meshio
 import numpy as np
 import pytest
 
-from meshes.anatomy import FIXED, SKIN, STANDARD_LANDMARKS, Anatomy, signed_volumes
+from meshes.anatomy import (
+    FIXED,
+    SKIN,
+    STANDARD_LANDMARKS,
+    Anatomy,
+    segment_tags,
+    signed_volumes,
+)
 from meshes.errors import InputError, MeshError
 from meshes.external import load_tet_mesh, tetrahedralise
 from meshes.synthetic import CASES, RESOLUTIONS, synthetic_head
@@ -90,7 +97,9 @@ def _write_tet_mesh(a: Anatomy, path, landmarks):
                                    cell_data={"tag": [np.zeros(len(a.cells), int),
                                                       a.facet_tags]}))
     side = {"facet_data": "tag", "roles": {"skin": 1, "fixed": 2, "free_bone": 3, "rim": 4},
-            "segments": {k: int(v) for k, v in a.segments.items()}, "landmarks": landmarks}
+            "segments": {k: int(v) for k, v in a.segments.items()},
+            "teeth": {k: int(segment_tags(v)[1]) for k, v in a.segments.items()},
+            "landmarks": landmarks}
     with open(str(path) + ".json", "w") as fh:
         json.dump(side, fh)
 

@@ -265,6 +265,17 @@ def _plan_recovers(tmp_path, mesh, p_star: dict, landmarks, n_landmarks_min=2):
                                atol=1e-3)
 
 
+def _check_teeth(rep: dict, segments: set):
+    """Every segment has teeth (`meshes.teeth`): crowns of at least 1 cm² with their
+    vestibule, in a band no taller than the crown's search band and the vestibule."""
+    from meshes.teeth import OCCLUSAL_MM, VESTIBULE_MM
+
+    assert set(rep["teeth"]) == segments, rep["teeth"]
+    for name, t in rep["teeth"].items():
+        lo, hi = t["height_mm"]
+        assert t["area_mm2"] > 100 and hi - lo < OCCLUSAL_MM + max(VESTIBULE_MM.values()), t
+
+
 @needs_cranium
 def test_cranium_lefort_scene_through_the_scripts(tmp_path, cache):
     """Cranium.inv3 (Debian): ct_scene.py writes the scene and its report; a 5 mm LeFort I
@@ -277,8 +288,10 @@ def test_cranium_lefort_scene_through_the_scripts(tmp_path, cache):
     assert {"Prn", "Sn"} <= set(rep["landmarks"])
     assert not {"T_L", "T_R"} & set(rep["landmarks"])   # the crop ends in front of the ears
     assert rep["min_quality"] > 0.05 and Path(rep["mesh"]).exists()
+    _check_teeth(rep, {"maxilla_L", "maxilla_R"})
     sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "maxilla.advance_mm=5"])
     assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
+    assert sim["contact"] == "sliding"
     _plan_recovers(tmp_path, rep["mesh"], {"maxilla.advance_mm": 4.0, "maxilla.vertical_mm":
                                            -1.5}, sorted(rep["landmarks"]))
 
@@ -299,8 +312,12 @@ def test_headsq_double_jaw_scene_through_the_scripts(tmp_path, cache):
     mid = json.loads((EXAMPLES / "headsq.json").read_text())["midsagittal"]["point"][0]
     assert t_l[0] - mid > 50 and mid - t_r[0] > 50   # on the two sides of the head,
     assert np.abs(t_l[1:] - t_r[1:]).max() < 2 * 3.2   # level and abreast within 2 voxels
+    _check_teeth(rep, {"mandible", "maxilla_L", "maxilla_R"})
+    upper = min(rep["teeth"][s]["height_mm"][0] for s in ("maxilla_L", "maxilla_R"))
+    assert upper > rep["teeth"]["mandible"]["height_mm"][1]   # the upper teeth above the lower
     sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "jaws.advance_mm=5"])
     assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
+    assert sim["contact"] == "sliding"
     _plan_recovers(tmp_path, rep["mesh"], {"jaws.advance_mm": 3.0, "jaws.pitch_deg": 2.0},
                    sorted(rep["landmarks"]))
     targets = tmp_path / "t.json"

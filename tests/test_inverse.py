@@ -14,6 +14,11 @@ def scene(tight_scene):
     return tight_scene
 
 
+#: Both contacts, for the derivative checks: ``request.getfixturevalue`` of each scene.
+CONTACT_SCENES = pytest.mark.parametrize("contact_scene", ["tight_scene", "tight_glued"],
+                                         ids=["sliding", "glued"])
+
+
 P0 = np.array([3.0, -1.0, 1.0, 2.0, 1.0, -2.0])
 #: A point with rotations of 5-10°, where the exact rigid motions are far from linear.
 P_ROT = np.array([2.0, -1.0, 1.0, 8.0, 6.0, -7.0])
@@ -30,8 +35,12 @@ def _T_at(scene, obj, p):
     return obj.value()
 
 
+@CONTACT_SCENES
 @pytest.mark.parametrize("p0", [P0, P_ROT], ids=["small", "rotated"])
-def test_taylor_adjoint_gradient(scene, rng, p0):
+def test_taylor_adjoint_gradient(request, contact_scene, rng, p0):
+    """The adjoint gradient: Taylor remainders of rate 1 without it and 2 with it, the lips
+    sliding on the teeth (whose normals turn with the mandible) and glued."""
+    scene = request.getfixturevalue(contact_scene)
     obj = _objective(scene, weights={"Pg": 2.0}, tikhonov=0.01)
     T0 = _T_at(scene, obj, p0)
     g = obj.gradient()
@@ -83,8 +92,11 @@ def test_tangent_ready_solve_serves_the_adjoint_without_a_factorisation(mandible
     assert T == obj.value() and np.abs(g_api - g_exact).max() < 1e-8 * np.abs(g_exact).max()
 
 
+@CONTACT_SCENES
 @pytest.mark.parametrize("p0", [P0, P_ROT], ids=["small", "rotated"])
-def test_landmark_sensitivity_matches_finite_differences(scene, central_differences, p0):
+def test_landmark_sensitivity_matches_finite_differences(request, contact_scene,
+                                                         central_differences, p0):
+    scene = request.getfixturevalue(contact_scene)
     obj = _objective(scene)
     scene.solve(p0)
     S_direct, m1 = obj.jacobian("direct")

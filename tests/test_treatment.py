@@ -5,12 +5,13 @@ import numpy as np
 import pytest
 
 from inverse.treatment import Treatment, rigid_treatment, sculpted_param
+from meshes.anatomy import segment_tags
 from meshes.errors import InputError
 
 
 def _surfaces(anatomy, tmp_path, shift):
     """The mandible's rest bone surface and a 'sculpted' copy moved by ``shift`` (mm)."""
-    tris = anatomy.facets[anatomy.facet_tags == anatomy.segments["mandible"]]
+    tris = anatomy.facets[np.isin(anatomy.facet_tags, segment_tags(anatomy.segments["mandible"]))]
     used, local = np.unique(tris, return_inverse=True)
     pts = anatomy.points[used]
     rest, mod = tmp_path / "rest.obj", tmp_path / "mod.obj"
