@@ -161,12 +161,14 @@ class Factorisation:
         t = time.perf_counter()
         # K at the equilibrium: assembled once, copied (MatCopy into a matrix never
         # assembled leaves it flagged unassembled: the first one is assembled)
-        if x is self.u_eq and A.assembled:
+        at_eq = x is self.u_eq   # K at the equilibrium: its p's normals, not the goals set
+        if at_eq and A.assembled:
             self._assemble_K()
             self.K.copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
             self._set_state(x)
-            self._assemble_jacobian(A)
+            with self._turns_at(self.p if at_eq else None):
+                self._assemble_jacobian(A)
         if self._diag_scale is None:   # typical elastic diagonal, for shift sizes
             d = A.getDiagonal()
             med = np.median(d.array_r) if d.getLocalSize() else 0.0
@@ -250,7 +252,8 @@ class Factorisation:
         if self._K_ready:
             return
         self._set_state(self.u_eq)
-        self._assemble_jacobian(self.K)
+        with self._turns_at(self.p):
+            self._assemble_jacobian(self.K)
         self._K_ready = True
 
     def _factorise_at_equilibrium(self):

@@ -58,11 +58,11 @@ Z_LEFORT, Z_OCCLUSAL, Y_BSSO = -15.0, -38.0, 20.0
 #: subnasale 0.57, upper lip 0.62 (class1, coarse; BENCHMARKS.md, plausibility). At -18 mm
 #: subnasale fell to 0.48, below its published 0.5-0.9.
 Y_MASK, Z_MASK = -12.0, 50.0
-#: The synthetic heads' tissue is glued to their teeth unless a scene says otherwise: their
-#: maxilla is 22 mm tall, so its teeth and vestibule cover all of it below the cut's free
-#: band, and sliding, a 5 mm LeFort I advance brought subnasale 0.34 and the nasal tip 0.05
-#: of it forward (published 0.5-0.9 and 0.13-0.33); glued, 0.57 and 0.20 (class1, coarse;
-#: docs/decisions.md).
+#: The synthetic heads' tissue is glued to their teeth unless a scene says otherwise (the
+#: paper's model, which these heads are compared with): their soft-to-hard ratios differ by
+#: at most 0.03 between the two contacts, all inside the published ranges either way
+#: (class1 coarse, 5 mm LeFort I: subnasale 0.57 glued, 0.53 sliding; nasal tip 0.20 and
+#: 0.18 forward; BENCHMARKS.md, plausibility; docs/decisions.md).
 SYNTHETIC_CONTACT = "glued"
 #: Target edge length (mm) per resolution; vertex counts are measured in BENCHMARKS.md.
 RESOLUTIONS = {"tiny": 8.0, "coarse": 5.5, "medium": 4.0, "paper": 2.3, "fine": 1.4}

@@ -64,18 +64,18 @@ def _tight_scenes(tiny_anatomy):
 
 @pytest.fixture
 def tight_scene(_tight_scenes):
-    """class3/tiny, six mandible motions, the lips sliding on the teeth (the default), solved
-    by Newton to tolerances far below the defaults (for rate, Taylor and finite-difference
-    checks); back at rest afterwards."""
-    scene = _tight_scenes("sliding")
+    """class3/tiny, six mandible motions, the lips glued to the teeth (a synthetic head's
+    default), solved by Newton to tolerances far below the defaults (for rate, Taylor and
+    finite-difference checks); back at rest afterwards."""
+    scene = _tight_scenes("glued")
     yield scene
     scene.solve(np.zeros(6))
 
 
 @pytest.fixture
-def tight_glued(_tight_scenes):
-    """`tight_scene` with the tissue glued to the teeth (the paper's model)."""
-    scene = _tight_scenes("glued")
+def tight_sliding(_tight_scenes):
+    """`tight_scene` with the lips sliding on the teeth."""
+    scene = _tight_scenes("sliding")
     yield scene
     scene.solve(np.zeros(6))
 

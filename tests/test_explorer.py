@@ -41,20 +41,22 @@ def _first_order(scene, S, p: dict) -> np.ndarray:
     return np.asarray(scene["vertices"]) + S.astype(float) @ dp
 
 
-def test_solve_matches_the_first_order_error_explore_py_measures(tmp_path):
+@pytest.mark.parametrize("contact", ["glued", "sliding"])
+def test_solve_matches_the_first_order_error_explore_py_measures(tmp_path, contact):
     """After a 1 mm move, /api/solve's skin is x0 + S dp (from /api/scene and
     /api/sensitivity) within the first-order error that explore.py --compare measures for
     the same move, its reported maximum is that distance, and its landmarks are
-    simulate.py's."""
+    simulate.py's; with the lips glued to the teeth (the synthetic default) and sliding."""
+    opt = ["--contact", contact]
     rep = tmp_path / "explore.json"
-    r = _run(_python(EXPLORE + ["--dp", "mandible.advance_mm=1", "--compare",
-                                "--report", str(rep)]))
+    r = _run(_python(EXPLORE + opt + ["--dp", "mandible.advance_mm=1", "--compare",
+                                      "--report", str(rep)]))
     assert r.returncode == 0, r.stderr[-2000:]
     measured = json.loads(rep.read_text())["predictions"][0]["plain_error_max_mm"]
     sim = tmp_path / "sim.json"
-    r = _run(_python(SIMULATE + ["--p", "mandible.advance_mm=1", "--report", str(sim)]))
+    r = _run(_python(SIMULATE + opt + ["--p", "mandible.advance_mm=1", "--report", str(sim)]))
     assert r.returncode == 0, r.stderr[-2000:]
-    with explorer(CASE) as (url, proc):
+    with explorer(CASE + opt) as (url, proc):
         scene, S = _scene(url)
         status, out = request(url + "api/solve", {"p": {"mandible.advance_mm": 1.0}})
         assert status == 200, out

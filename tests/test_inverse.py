@@ -15,7 +15,7 @@ def scene(tight_scene):
 
 
 #: Both contacts, for the derivative checks: ``request.getfixturevalue`` of each scene.
-CONTACT_SCENES = pytest.mark.parametrize("contact_scene", ["tight_scene", "tight_glued"],
+CONTACT_SCENES = pytest.mark.parametrize("contact_scene", ["tight_sliding", "tight_scene"],
                                          ids=["sliding", "glued"])
 
 
