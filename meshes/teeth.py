@@ -9,9 +9,10 @@ tooth, or within the vestibule's depth of one on the same segment:
 
 * **teeth on a CT**: bone facets whose bone reaches `TEETH_HU` within `INSIDE_VOXELS` of
   the surface (enamel reads 2500-3000 HU and more, dentine about 1600-2000, cortical bone
-  up to about 1900: both CTs' voxels above 2000 HU lie at their crowns; Cranium's only in
-  the bottom 6 mm of its field of view, headsq's within 15 mm of the occlusal plane, with
-  its fillings), within `OCCLUSAL_MM` of the occlusal plane where the scene file gives one;
+  up to about 1900: Cranium's voxels above 2000 HU lie only in the bottom 6 mm of its field
+  of view, through the crowns; 84 % of headsq's within 15 mm of its occlusal plane, with
+  its fillings, the rest in the skull base and the chin's cortex), within `OCCLUSAL_MM` of
+  the occlusal plane where the scene file gives one;
 * **teeth on a synthetic head**: the band of each jaw's bone one crown height (`CROWN_MM`)
   from its occlusal edge;
 * **the vestibule**: `VESTIBULE_MM` beyond the teeth.
