@@ -226,15 +226,13 @@ def _outside_label(labels: np.ndarray, volume: Volume, mid, normal) -> np.ndarra
     """The label (B,) just outside each facet: the first non-tissue sample along its normal,
     else the most common non-tissue label around the facet's voxel."""
     origin = volume.origin - volume.spacing   # the padded array
+    padded = Volume(labels, volume.spacing, origin)
     step = np.abs(normal) @ volume.spacing
     out = np.full(len(mid), 255, dtype=np.int32)
     shape = np.array(labels.shape)
     for k in SAMPLE_VOXELS:
         todo = out == 255
-        ijk = np.rint((mid[todo] + k * step[todo, None] * normal[todo] - origin)
-                      / volume.spacing).astype(int)
-        ijk = np.clip(ijk, 0, shape - 1)
-        lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]].astype(np.int32)
+        lab = padded.at(mid[todo] + k * step[todo, None] * normal[todo]).astype(np.int32)
         sel = np.flatnonzero(todo)
         hit = lab != seg.TISSUE
         out[sel[hit]] = lab[hit]
