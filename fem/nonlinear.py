@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from fem import compat
 from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
 from meshes.errors import SolverError
 
@@ -263,10 +264,8 @@ class NonlinearSolves:
         self.set_params(p)
         self._shift = 0.0
         load = self._load(p - p_from)
-        zero = load.duplicate()
-        zero.set(0.0)
-        total = self._contact_load(p, zero)   # the goals' whole load at rest
-        zero.destroy()
+        total = load.duplicate()   # |df/dg g(p)|: a scale (sliding: df/dg of the last p0)
+        self.dfdg.mult(compat.petsc_vec(self.goal), total)
         # no load: refining the current equilibrium to a tighter xtol, where only steps count
         self._f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
         load.destroy()
