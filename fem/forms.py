@@ -220,9 +220,8 @@ class Forms:
         goals from the equilibrium's p0 to p, with f_c the penalties' residual (for linear
         goals and glued tissue, the tangent load -df/dp dp). The sliding facets' normals
         stay at p0, as in K there: K's stiff penalty directions turn with them, and a load
-        along the turned normals, answered by K at p0, slid the tissue along the teeth
-        (a 0.6° turn of the mandible, class3 tiny: a prediction 7x the first-order one,
-        inverting elements)."""
+        along the turned normals, answered by K at p0, slides the tissue along the teeth
+        (docs/decisions.md, "Sliding lips")."""
         out = self._contact_load(self.p, self.u_eq)
         moved = self._contact_load(p, self.u_eq, turns_at=self.p)
         out.axpy(-1.0, moved)
