@@ -36,7 +36,9 @@ class Domain:
         input_index: (n_local_nodes,) original vertex index of each dof block, -1 on edges.
         node_of_block: (n_local_nodes,) geometry node of each dof block, -1 on edges.
         segments, pivots, landmarks, name, n_vertices, n_cells, occlusion, head_frame,
-        contact: as in `Anatomy`.
+        contact, material: as in `Anatomy`.
+        tissues: (n_local_cells, 3) tissue fractions of the local cells (ghosts included,
+            dolfinx's local order; `meshes.tissue.TISSUES`), or None.
     """
 
     mesh: object
@@ -54,6 +56,8 @@ class Domain:
     occlusion: np.ndarray | None = None
     head_frame: object = None   # meshes.frame.HeadFrame or None
     contact: str = "sliding"
+    material: str = "homogeneous"
+    tissues: np.ndarray | None = None
 
     @property
     def degree(self) -> int:
@@ -226,7 +230,7 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
                         landmarks=anatomy.landmarks, name=anatomy.name,
                         n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells,
                         occlusion=anatomy.occlusion, head_frame=anatomy.head_frame,
-                        contact=anatomy.contact)
+                        contact=anatomy.contact, material=anatomy.material)
             cells, x = anatomy.cells, anatomy.points
             facets, values = anatomy.facets, anatomy.facet_tags
         except Exception as e:  # re-raised on every rank below
@@ -234,6 +238,7 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
     meta = comm.bcast(meta, root=root)
     if isinstance(meta, Exception):
         raise meta
+    tissues = comm.bcast(anatomy.tissues if comm.rank == root else None, root=root)
     domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.tetrahedron, 1))
     mesh = dolfinx.mesh.create_mesh(comm, cells, x, domain)
     tdim = mesh.topology.dim
@@ -256,7 +261,9 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
     node_key[vdofs.ravel()] = np.sort(vertex[:, ends], axis=2).reshape(-1, 2)
     X = np.empty((n_blocks, 3))
     X[vdofs.ravel()] = mesh.geometry.x[:, :3][gdofs][:, ends].mean(axis=2).reshape(-1, 3)
-    return Domain(mesh, ft, V, X, node_key, node_of_block, **meta)
+    if tissues is not None:
+        tissues = tissues[np.asarray(mesh.topology.original_cell_index)]
+    return Domain(mesh, ft, V, X, node_key, node_of_block, tissues=tissues, **meta)
 
 
 def node_values(domain: Domain, block_values: np.ndarray) -> np.ndarray:

@@ -51,7 +51,7 @@ from fem.domain import Domain
 from fem.factorisation import Factorisation
 from fem.forms import DEFAULT_PENALTY, Forms
 from fem.limits import OPTIONS, check
-from fem.material import NeoHookean
+from fem.material import HOMOGENEOUS, NeoHookean, Tissues, neo_hookean
 from fem.nonlinear import NonlinearSolves, SolveStats
 from fem.path import PathFollowing
 from fem.policy import DEFAULT_POLICY, METHOD_DEFAULTS, METHODS, PRESETS, SolverPolicy
@@ -102,7 +102,8 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         active_tags: facet tags held to their goals by the penalty (glued).
         sliding_tags: facet tags held to their goals in the normal direction only (tissue
             that slides on teeth).
-        material: Neo-Hookean soft tissue.
+        material: Neo-Hookean soft tissue: one `NeoHookean` for all cells, or `Tissues`,
+            one per tissue class, mixed per cell by the domain's ``tissues`` fractions.
         penalty: k, kPa/mm, weight of the active-vertex penalty per unit area.
         solver: a key of `PRESETS`; any PETSc option can be overridden with
             ``-<prefix>ksp_type ...`` on the command line or in ``options``.
@@ -132,7 +133,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
     """
 
     def __init__(self, domain: Domain, goals, active_tags, sliding_tags=(),
-                 material: NeoHookean = NeoHookean(), penalty: float = DEFAULT_PENALTY,
+                 material: NeoHookean | Tissues = HOMOGENEOUS, penalty: float = DEFAULT_PENALTY,
                  solver: str = "direct", options: dict | None = None,
                  prefix: str = "orthodiff_fwd_", method: str = "qn",
                  xtol: float | None = None, frtol: float = 1e-2, atol: float = 1e-10,
@@ -179,9 +180,10 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         ds = domain.ds()
         md = {"quadrature_degree": quadrature_degree}
         gap = self.u - self.goal
-        # material and penalty are constants, not numbers: the forms compile once for all
-        mu, lmbda, k = (dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(v))
-                        for v in (material.mu, material.lmbda, penalty))
+        # material and penalty are constants (or cell fields), not numbers: the forms
+        # compile once for all values
+        k = dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(penalty))
+        mu, lmbda = self._lame(material)
         qd = 2 * (domain.degree - 1) if volume_quadrature_degree is None else \
             volume_quadrature_degree
         dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
@@ -194,7 +196,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
             self._setup_turns(sliding_tags)
             n = ufl.dot(self.turn, ufl.FacetNormal(domain.mesh))
             contact = contact + 0.5 * k * ufl.inner(gap, n) ** 2 * ds(sliding_tags, metadata=md)
-        energy = material.energy_density(F, mu, lmbda) * dx + contact
+        energy = neo_hookean(F, mu, lmbda) * dx + contact
         residual = ufl.derivative(energy, self.u, v)
         jacobian = ufl.derivative(residual, self.u, du)
         coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant when glued
@@ -258,6 +260,24 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
                        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.25] * 3], dtype=float)
         self._det_F = compat.eval_expression(ufl.det(F), pts, domain.mesh)
         self.setup_time = time.perf_counter() - t0
+
+    def _lame(self, material):
+        """UFL (mu, lmbda), kPa: constants for one material, DG0 fields for `Tissues`."""
+        mesh = self.domain.mesh
+        if isinstance(material, NeoHookean):
+            return (dolfinx.fem.Constant(mesh, PETSc.ScalarType(v))
+                    for v in (material.mu, material.lmbda))
+        if self.domain.tissues is None:
+            raise InputError(f"anatomy {self.domain.name!r} has no tissue classes: use the "
+                             "homogeneous material")
+        out = []
+        space = compat.scalar_space(mesh)
+        dofs = space.dofmap.list.array   # one dof per local cell, in cell order
+        for name, values in zip(("mu", "lambda"), material.lame(self.domain.tissues)):
+            f = dolfinx.fem.Function(space, name=name)
+            f.x.array[dofs] = values
+            out.append(f)
+        return out
 
     def _setup_turns(self, tags):
         """The DG0 rotation field of the sliding facets' cells, and the dof blocks of each

@@ -44,8 +44,97 @@ class NeoHookean:
         """Strain energy density (UFL scalar, kPa) of the deformation gradient F. ``mu`` and
         ``lmbda`` may be UFL constants holding `mu` and `lmbda` (one compiled form serves
         every material); by default the numbers are used."""
-        mu = self.mu if mu is None else mu
-        lmbda = self.lmbda if lmbda is None else lmbda
-        J = ufl.det(F)
-        lnJ = ufl.ln(J)
-        return 0.5 * mu * (ufl.tr(F.T * F) - 3) - mu * lnJ + 0.5 * lmbda * lnJ**2
+        return neo_hookean(F, self.mu if mu is None else mu,
+                           self.lmbda if lmbda is None else lmbda)
+
+
+def neo_hookean(F, mu, lmbda):
+    """``psi`` (`NeoHookean`), kPa, of the deformation gradient F with Lame parameters mu and
+    lmbda (numbers, constants or cell fields, kPa)."""
+    J = ufl.det(F)
+    lnJ = ufl.ln(J)
+    return 0.5 * mu * (ufl.tr(F.T * F) - 3) - mu * lnJ + 0.5 * lmbda * lnJ**2
+
+
+#: The paper's single material (E = 5 kPa, nu = 0.47), ``--material homogeneous``.
+HOMOGENEOUS = NeoHookean()
+
+
+@dataclasses.dataclass(frozen=True)
+class Tissues:
+    """One Neo-Hookean material per tissue class (`meshes.tissue.TISSUES`), kPa.
+
+    A cell's Lame parameters are its classes' weighted by volume fraction (the Voigt mean):
+    a layer thinner than its cells keeps its membrane stiffness E·t, which is what a stiff
+    skin carries. Defaults, small-strain Young's moduli measured in vivo or fresh:
+
+    * skin, E = 36 kPa: the initial modulus of the face's skin by aspiration, 31-42 kPa at
+      the cheek, cheekbone, forehead and lower lip of 16 subjects (Luboz, Promayon, Payan
+      2014, Ann Biomed Eng 42:2369); the middle of that range. Skin measured by torsion or
+      tension reads 0.1-1 MPa, at larger strains and without the tissue under it; suction
+      on the face is the nearest to what the lips and cheeks do here.
+    * fat, E = 3.25 kPa: fresh adipose tissue at small strain, 3.25 ± 0.91 kPa (Samani,
+      Zubovits, Plewes 2007, Phys Med Biol 52:1565, breast fat, indentation and inversion).
+      No facial measurement of fat alone was found; in vivo indentation of the whole soft
+      tissue over the jaw reads 2.7-4.4 kPa (Wei et al. 2021, Int J Appl Mech 13:2150034).
+    * muscle, E = 10.7 kPa: the relaxed masseter by shear-wave elastography, 10.67 ± 1.77
+      kPa in 140 healthy adults (Olchowy et al. 2021, Int J Environ Res Public Health
+      18:9371), the largest cohort of a facial muscle found.
+    * nu = 0.47 for each, the paper's: no source measures the tissues' compressibility
+      better (all are nearly incompressible).
+    """
+
+    skin: NeoHookean = NeoHookean(E=36.0)
+    fat: NeoHookean = NeoHookean(E=3.25)
+    muscle: NeoHookean = NeoHookean(E=10.7)
+
+    def lame(self, fractions):
+        """(mu (M,), lmbda (M,)) kPa of cells with tissue ``fractions`` (M, 3)."""
+        import numpy as np
+
+        f = np.asarray(fractions, dtype=float)
+        classes = (self.skin, self.fat, self.muscle)
+        return (f @ np.array([m.mu for m in classes]),
+                f @ np.array([m.lmbda for m in classes]))
+
+    @classmethod
+    def from_file(cls, path) -> "Tissues":
+        """From a JSON file ``{"skin": {"E": kPa, "nu": ..}, "fat": .., "muscle": ..}``; a
+        class it leaves out keeps its default. Raises `InputError` (one line)."""
+        import json
+        from pathlib import Path
+
+        try:
+            spec = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise InputError(f"cannot read material file {path}: {e}") from e
+        if not isinstance(spec, dict) or set(spec) - {"skin", "fat", "muscle"}:
+            raise InputError(f"material file {path}: expected an object with keys skin, fat, "
+                             "muscle")
+        out = {}
+        for name, given in spec.items():
+            if not isinstance(given, dict) or set(given) - {"E", "nu"}:
+                raise InputError(f"material file {path}: {name} must be {{\"E\": kPa, "
+                                 "\"nu\": ...}")
+            try:
+                out[name] = NeoHookean(**{k: float(v) for k, v in given.items()})
+            except (TypeError, ValueError) as e:
+                raise InputError(f"material file {path}: {name}: {e}") from e
+            except InputError as e:
+                raise InputError(f"material file {path}: {name}: {e}") from e
+        return dataclasses.replace(cls(), **out)
+
+
+def material_from_spec(spec):
+    """A material from "homogeneous", "tissues", a material file (`Tissues.from_file`), or a
+    `NeoHookean` or `Tissues` itself."""
+    if isinstance(spec, (NeoHookean, Tissues)):
+        return spec
+    if spec == "homogeneous":
+        return HOMOGENEOUS
+    if spec == "tissues":
+        return Tissues()
+    if isinstance(spec, str) and spec.endswith(".json"):
+        return Tissues.from_file(spec)
+    raise InputError(f"material must be 'homogeneous', 'tissues' or a .json material file, "
+                     f"got {spec!r}")

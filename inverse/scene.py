@@ -19,7 +19,7 @@ from fem.domain import create_domain, node_values
 from fem.equilibrium import Equilibrium, SolveStats
 from fem.forms import DEFAULT_PENALTY
 from fem.io import write_xdmf
-from fem.material import NeoHookean
+from fem.material import NeoHookean, Tissues, material_from_spec
 from inverse.treatment import Treatment, rigid_treatment
 from meshes.anatomy import segment_tags
 from meshes.errors import InputError
@@ -48,7 +48,12 @@ class Scene:
             anatomy's ``contact`` where it has teeth, else glued: a CT scene's teeth slide,
             a synthetic head's are glued).
         degree: Lagrange degree of the displacement, 1 (default) or 2.
-        material, penalty (kPa/mm), solver (preset name), options (PETSc options), and
+        material: "tissues" (skin, fat and lean tissue per cell, `fem.material.Tissues`),
+            "homogeneous" (the paper's E = 5 kPa, nu = 0.47), a material file (.json,
+            `fem.material.Tissues.from_file`), a `NeoHookean` or `Tissues`, or None
+            (default: the anatomy's ``material``: a CT scene's tissues, a synthetic head's
+            homogeneous material).
+        penalty (kPa/mm), solver (preset name), options (PETSc options), and
             ``newton`` (dict: xtol, frtol, max_it, ...): passed to `fem.equilibrium.Equilibrium`.
     """
 
@@ -57,7 +62,7 @@ class Scene:
 
     def __init__(self, anatomy, treatment: Treatment | None = None,
                  params_used=None, occlusion="free", linear: bool = False,
-                 groups: bool = True, material: NeoHookean = NeoHookean(),
+                 groups: bool = True, material: NeoHookean | Tissues | str | None = None,
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
                  options: dict | None = None, newton: dict | None = None,
                  contact: str | None = None, degree: int = 1,
@@ -87,6 +92,12 @@ class Scene:
                              "to slide on: use contact 'glued'")
         self.contact = contact or (self.domain.contact if teeth else "glued")
         sliding = teeth if self.contact == "sliding" else []
+        if material is None:
+            material = self.domain.material if self.domain.tissues is not None \
+                else "homogeneous"
+        #: "homogeneous", "tissues", a material file, or the repr of the material given
+        self.material = material if isinstance(material, str) else repr(material)
+        material = material_from_spec(material)
         glued = [t for s in self.domain.segments.values() for t in segment_tags(s)
                  if t not in sliding]
         t0 = time.perf_counter()
@@ -150,7 +161,8 @@ class Scene:
         frame, the head frame they were built in (`meshes.frame.HeadFrame.report`), and
         ``contact`` (how the tissue held to the teeth)."""
         return {"transforms": self.transforms(), "occlusion": self.treatment.occlusion,
-                "contact": self.contact, **self.head_frame.report()}
+                "contact": self.contact, "material": self.material,
+                **self.head_frame.report()}
 
     def params_from_transforms(self, transforms: dict) -> np.ndarray:
         """The parameters (Np,) that move the segments by ``transforms`` ({segment: 4×4};

@@ -26,6 +26,8 @@ SKIN, FIXED, FREE_BONE, RIM = 1, 2, 3, 4
 SEGMENT_TAG0 = 11
 TEETH_OFFSET = 20
 ROLE_NAMES = {SKIN: "skin", FIXED: "fixed", FREE_BONE: "free_bone", RIM: "rim"}
+#: An anatomy's default material (`fem.material`): per-cell tissues or the paper's single one.
+MATERIALS = ("tissues", "homogeneous")
 #: Facets held by a Dirichlet condition (u = 0).
 DIRICHLET_TAGS = (FIXED, RIM)
 #: Landmarks every built-in case provides (issue 3, DESIGN.md naming).
@@ -71,6 +73,10 @@ class Anatomy:
         contact: how its tissue holds to its teeth unless a scene says otherwise,
             "sliding" or "glued" (`inverse.scene.Scene`; the synthetic heads: glued,
             docs/decisions.md).
+        tissues: optional (M, 3) fraction of each cell that is skin, fat and lean tissue
+            (`meshes.tissue.TISSUES`), rows summing to 1; None: unknown.
+        material: its material unless a scene says otherwise, "tissues" (needs
+            ``tissues``) or "homogeneous" (the paper's single material).
     """
 
     points: np.ndarray
@@ -84,6 +90,8 @@ class Anatomy:
     occlusion: np.ndarray | None = None
     head_frame: HeadFrame | None = None
     contact: str = "sliding"
+    tissues: np.ndarray | None = None
+    material: str = "homogeneous"
 
     @property
     def n_vertices(self) -> int:
@@ -152,6 +160,7 @@ class Anatomy:
         self.points, self.cells = p, c.astype(np.int64)
         self._validate_tags()
         self._validate_landmarks()
+        self._validate_tissues()
         return self
 
     def _validate_tags(self):
@@ -204,6 +213,20 @@ class Anatomy:
                 raise MeshError(f"landmark {name!r} is off the skin: its facet "
                                 f"{np.asarray(lm.facet).tolist()} is not a skin facet")
 
+    def _validate_tissues(self):
+        if self.material not in MATERIALS:
+            raise MeshError(f"material must be one of {list(MATERIALS)}, got {self.material!r}")
+        if self.tissues is None:
+            if self.material == "tissues":
+                raise MeshError("material 'tissues' needs the cells' tissue fractions")
+            return
+        f = np.asarray(self.tissues, dtype=float)
+        if f.shape != (self.n_cells, 3) or not np.all(np.isfinite(f)) or f.min() < 0 \
+                or np.abs(f.sum(axis=1) - 1).max() > 1e-6:
+            raise MeshError(f"tissue fractions must be ({self.n_cells}, 3), >= 0, each row "
+                            f"summing to 1; got shape {f.shape}")
+        self.tissues = f
+
     # ------------------------------------------------------------------ storage
     def save(self, path: str | Path) -> None:
         """Write to ``path`` (.npz) atomically."""
@@ -211,7 +234,7 @@ class Anatomy:
                 "occlusion": None if self.occlusion is None else
                 np.asarray(self.occlusion).tolist(),
                 "head_frame": None if self.head_frame is None else self.head_frame.report(),
-                "contact": self.contact,
+                "contact": self.contact, "material": self.material,
                 "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
                 "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
                               for k, v in self.landmarks.items()}}
@@ -219,8 +242,9 @@ class Anatomy:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.part")
         with os.fdopen(fd, "wb") as fh:
+            extra = {} if self.tissues is None else {"tissues": self.tissues}
             np.savez(fh, points=self.points, cells=self.cells, facets=self.facets,
-                     facet_tags=self.facet_tags, meta=json.dumps(meta))
+                     facet_tags=self.facet_tags, meta=json.dumps(meta), **extra)
         os.replace(tmp, path)
 
     @classmethod
@@ -238,7 +262,9 @@ class Anatomy:
                            occlusion=None if meta.get("occlusion") is None else
                            np.array(meta["occlusion"], dtype=float),
                            head_frame=HeadFrame.from_report(meta.get("head_frame")),
-                           contact=meta.get("contact", "sliding"))
+                           contact=meta.get("contact", "sliding"),
+                           tissues=d["tissues"] if "tissues" in d else None,
+                           material=meta.get("material", "homogeneous"))
         except (OSError, KeyError, ValueError) as e:
             raise MeshError(f"cannot read anatomy file {path}: {e}") from e
 

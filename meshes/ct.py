@@ -12,7 +12,9 @@ Stages, each with the well-kept library for it:
    vestibule by HU (`meshes.teeth`);
 5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), built in
    the head frame (`meshes.frame`: given by the scene file's ``frame``, or estimated on the
-   whole CT before the crop), or from a file.
+   whole CT before the crop), or from a file;
+6. **tissues**: each cell's share of skin, fat and lean tissue (`meshes.tissue`: by HU, or
+   by a label map's ``"fat"`` label).
 
 The scene file (JSON, mm in the scene's frame: the CT's patient frame with x left, y anterior,
 z superior) holds the osteotomy planes and optionally ``frame`` (`meshes.frame`), ``crop``
@@ -56,6 +58,7 @@ from meshes.landmarks import skin_landmarks
 from meshes.osteotomy import Osteotomies, Plane
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import ct_teeth, tag_teeth
+from meshes.tissue import ct_fat, tissue_fractions, tissue_report
 from meshes.volume import Volume, read_volume
 
 log = logging.getLogger(__name__)
@@ -115,10 +118,10 @@ def _digest(path: Path) -> str:
 def _code_digest() -> str:
     """The pipeline's own source: a cached scene is rebuilt when the code that made it
     changes (the synthetic heads bump `GENERATOR_VERSION` by hand; here no hand is needed)."""
-    from meshes import anatomy, frame, landmarks, osteotomy, segment, teeth, volume
+    from meshes import anatomy, frame, landmarks, osteotomy, segment, teeth, tissue, volume
 
     h = hashlib.sha1()
-    for module in (anatomy, frame, landmarks, osteotomy, segment, teeth, volume):
+    for module in (anatomy, frame, landmarks, osteotomy, segment, teeth, tissue, volume):
         h.update(Path(module.__file__).read_bytes())
     h.update(Path(__file__).read_bytes())
     return h.hexdigest()
@@ -324,9 +327,27 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
                                        (facets[rest], ~np.isin(tags[rest], (0, RIM))))
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
-    return anatomy, {"timings_s": timings,
+    t = time.perf_counter()
+    fat = _fat_rule(volume, spec.get("labels") if is_map else None, is_map)
+    if fat is not None:
+        anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin, fat)
+        anatomy.material = "tissues"
+    timings["tissues"] = time.perf_counter() - t
+    return anatomy, {"timings_s": timings, "tissues": tissue_report(anatomy),
                      "min_quality": float(tet_quality(anatomy.points, anatomy.cells).min()),
                      "voxel_mm": volume.spacing.tolist(), **frame.report()}
+
+
+def _fat_rule(volume: Volume, labels, is_map: bool):
+    """``is_fat`` of `meshes.tissue.tissue_fractions`: by HU on a CT, by the ``"fat"`` label
+    on a label map that names one; None where the scene cannot tell fat (a label map
+    without it)."""
+    if not is_map:
+        return ct_fat(volume.at)
+    if not labels or "fat" not in labels:
+        return None
+    values = np.atleast_1d(labels["fat"])
+    return lambda x: np.isin(volume.at(x), values)
 
 
 def _crop_faces(volume: Volume, mid, normals, free) -> np.ndarray:

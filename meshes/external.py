@@ -12,6 +12,10 @@ Two paths, both ending in a validated `Anatomy`:
                                                  # tissue slides (`meshes.teeth`)
         "contact": "sliding",                    # optional: or "glued", the default of
                                                  # scenes on this mesh
+        "tissue_data": ["skin", "fat", "muscle"], # optional: the tetra cell-data arrays of
+                                                 # each cell's tissue fractions
+                                                 # (`meshes.tissue.TISSUES`, rows sum to 1)
+        "material": "tissues",                   # optional: or "homogeneous" (the default)
         "pivots": {"mandible": [0, 55, -60]},     # optional, mm; default segment centroid
         "occlusion": [[4x4]] or "occlusion.tfm", # optional: the final occlusion, the
                                                  # mandible's motion relative to the maxilla
@@ -51,6 +55,7 @@ from meshes.anatomy import (
     segment_tags,
 )
 from meshes.errors import MeshError
+from meshes.tissue import TISSUES
 
 LANDMARK_TOL_MM = 0.5
 ROLE_TAGS = {"skin": SKIN, "fixed": FIXED, "free_bone": FREE_BONE, "rim": RIM}
@@ -186,10 +191,28 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
                       {}, name=Path(path).name,
                       occlusion=read_occlusion(spec.get("occlusion"), sidecar),
                       head_frame=_head_frame(spec, sidecar),
-                      contact=spec.get("contact", "sliding"))
+                      contact=spec.get("contact", "sliding"),
+                      tissues=_tissues(mesh, spec.get("tissue_data"), path),
+                      material=spec.get("material", "homogeneous"))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
+
+
+def _tissues(mesh, names, path):
+    """(M, 3) tissue fractions from the tetra cell-data arrays ``names``, or None."""
+    if names is None:
+        return None
+    if not isinstance(names, list) or len(names) != len(TISSUES):
+        raise MeshError(f"{path}: tissue_data must name {len(TISSUES)} cell-data arrays, "
+                        f"the fractions of {list(TISSUES)}")
+    cols = []
+    for name in names:
+        if name not in mesh.cell_data:
+            raise MeshError(f"{path}: no cell data {name!r} (tissue_data)")
+        cols.append(np.concatenate([np.asarray(a, float).reshape(-1) for a, c in
+                                    zip(mesh.cell_data[name], mesh.cells) if c.type == "tetra"]))
+    return np.stack(cols, axis=1)
 
 
 def tetrahedralise(skin_file, bone_file, regions: list, landmarks: dict,
@@ -271,19 +294,25 @@ def write_tet_mesh(anatomy: Anatomy, path) -> list:
     import meshio
 
     path = Path(path)
+    data = {"tag": [np.zeros(anatomy.n_cells, dtype=np.int32),
+                    anatomy.facet_tags.astype(np.int32)]}
+    if anatomy.tissues is not None:   # per tet; the triangles' 0 is no fraction
+        data.update({name: [anatomy.tissues[:, k], np.zeros(len(anatomy.facets))]
+                     for k, name in enumerate(TISSUES)})
     mesh = meshio.Mesh(anatomy.points, [("tetra", anatomy.cells), ("triangle", anatomy.facets)],
-                       cell_data={"tag": [np.zeros(anatomy.n_cells, dtype=np.int32),
-                                          anatomy.facet_tags.astype(np.int32)]})
+                       cell_data=data)
     mesh.write(path)
     sidecar = Path(str(path) + ".json")
     teeth = {n: segment_tags(t)[1] for n, t in anatomy.segments.items()
              if segment_tags(t)[1] in anatomy.teeth_tags}
     spec = {"facet_data": "tag", "roles": dict(ROLE_TAGS), "segments": anatomy.segments,
-            "teeth": teeth, "contact": anatomy.contact,
+            "teeth": teeth, "contact": anatomy.contact, "material": anatomy.material,
             "pivots": {k: np.asarray(v).tolist() for k, v in anatomy.pivots.items()},
             "landmarks": {k: {"facet": np.asarray(v.facet).tolist(),
                               "weights": np.asarray(v.weights).tolist()}
                           for k, v in anatomy.landmarks.items()}}
+    if anatomy.tissues is not None:
+        spec["tissue_data"] = list(TISSUES)
     if anatomy.occlusion is not None:
         spec["occlusion"] = np.asarray(anatomy.occlusion).tolist()
     if anatomy.head_frame is not None:

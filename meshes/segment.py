@@ -46,7 +46,9 @@ MIN_AIR_MM3 = 100.0
 #: between parted lips, a thin scalp at coarse voxels) before the input is refused.
 BONE_EXPOSED_MAX = 0.25
 #: Label-map values (3D Slicer segmentation exported as NRRD/NIfTI): 0 air, 1 soft tissue,
-#: 2 bone, unless a mapping is given.
+#: 2 bone, unless a mapping is given. A mapping may also name ``"fat"`` and ``"muscle"``
+#: (lean tissue) labels, which are soft tissue too; with ``"fat"`` the scene has tissue
+#: classes (`meshes.tissue`), fat where the label is, lean tissue elsewhere.
 LABELMAP_DEFAULT = {"tissue": 1, "bone": 2}
 #: Crop faces, named by axis and side.
 FACES = ("-x", "+x", "-y", "+y", "-z", "+z")
@@ -105,9 +107,10 @@ def labels_from_map(volume: Volume, mapping: dict | None = None):
     mapping = {**LABELMAP_DEFAULT, **(mapping or {})}
     values = np.unique(volume.array)
     bone = np.isin(volume.array, np.atleast_1d(mapping["bone"]))
-    tissue = np.isin(volume.array, np.atleast_1d(mapping["tissue"]))
+    soft = [v for k in ("tissue", "fat", "muscle") for v in np.atleast_1d(mapping.get(k, []))]
+    tissue = np.isin(volume.array, soft)
     if not tissue.any():
-        raise MeshError(f"label map {volume.name} has no tissue label {mapping['tissue']} "
+        raise MeshError(f"label map {volume.name} has no tissue label {soft} "
                         f"(values: {values[:10].tolist()})")
     if not bone.any():
         raise MeshError(f"label map {volume.name} has no bone label {mapping['bone']}")

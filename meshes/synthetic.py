@@ -46,10 +46,11 @@ from meshes.anatomy import (
 from meshes.errors import InputError, MeshError
 from meshes.osteotomy import BAND_MM, SEGMENT_TAGS, SPLIT_MM, Osteotomies, axis_plane
 from meshes.teeth import CROWN_MM, VESTIBULE_MM, tag_teeth
+from meshes.tissue import FAT_HU, SKIN_MM, tissue_fractions
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 4   # 4: the teeth label (`meshes.teeth`)
+GENERATOR_VERSION = 5   # 4: the teeth label (`meshes.teeth`); 5: tissue classes
 Z_LEFORT, Z_OCCLUSAL, Y_BSSO = -15.0, -38.0, 20.0
 #: Z_LEFORT: the LeFort I cut runs below the piriform rim, 4 mm above subnasale (z = -19),
 #: so the nose sits on bone that does not move. With the cut at -6 mm (through the nasal
@@ -64,6 +65,14 @@ Y_MASK, Z_MASK = -12.0, 50.0
 #: (class1 coarse, 5 mm LeFort I: subnasale 0.57 glued, 0.53 sliding; nasal tip 0.20 and
 #: 0.18 forward; BENCHMARKS.md, plausibility; docs/decisions.md).
 SYNTHETIC_CONTACT = "glued"
+#: The synthetic heads' material unless a scene says otherwise: the paper's homogeneous one
+#: (docs/decisions.md, "Tissues"); their tissue classes serve ``--material tissues``.
+SYNTHETIC_MATERIAL = "homogeneous"
+#: Lean tissue (`meshes.tissue`) of the synthetic heads: a layer this thick (mm) on the bone,
+#: where the muscles of mastication and expression lie (masseter, buccinator, mentalis), and
+#: the lips (orbicularis oris) and the nose (its cartilage reads as lean tissue on a CT). The
+#: rest under the skin is fat: the subcutaneous fat and the cheeks' buccal fat.
+MUSCLE_MM = 4.0
 #: Target edge length (mm) per resolution; vertex counts are measured in BENCHMARKS.md.
 RESOLUTIONS = {"tiny": 8.0, "coarse": 5.5, "medium": 4.0, "paper": 2.3, "fine": 1.4}
 
@@ -155,6 +164,14 @@ def _distances(case: Case, points: np.ndarray):
     d_skin = np.min([e.grown(t).distance(points) for e, t in bone]
                     + [e.distance(points) for e in extra], axis=0)
     return d_skin, np.min([e.distance(points) for e, _ in bone], axis=0)
+
+
+def _is_fat(case: Case, x: np.ndarray) -> np.ndarray:
+    """(K,) bool: points x (K, 3) mm in the case's fat (`MUSCLE_MM`)."""
+    bone, extra, _, _ = _primitives(case)
+    d_bone = np.min([e.distance(x) for e, _ in bone], axis=0)
+    lean = (d_bone < MUSCLE_MM) | np.any([e.distance(x) < 0 for e in extra[:4]], axis=0)
+    return ~lean
 
 
 def _teeth(case: Case, mid: np.ndarray) -> np.ndarray:
@@ -257,9 +274,10 @@ def build(case_name: str, resolution: str) -> Anatomy:
             raise MeshError(f"landmark {name} ray missed the skin of case {case_name}")
         landmarks[name] = Landmark(facets[skin_idx[hit[0]]], hit[1])
     _check_volume(case, points, cells, case_name)
+    tissues = tissue_fractions(points, cells, facets[tags == SKIN], lambda x: _is_fat(case, x))
     anatomy = Anatomy(points, cells, facets, tags, segments, {}, landmarks,
                       name=f"{case_name}/{resolution}", occlusion=case_occlusion(case),
-                      contact=SYNTHETIC_CONTACT)
+                      contact=SYNTHETIC_CONTACT, tissues=tissues, material=SYNTHETIC_MATERIAL)
     anatomy.validate()
     # pivots: the centroid of each segment's rest bone vertices
     anatomy.pivots = {s: points[anatomy.segment_vertices(s)].mean(axis=0) for s in segments}
@@ -301,14 +319,14 @@ def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -
     """The synthetic anatomy of a case at a resolution, from the disk cache when present."""
     case, h = _check(case_name, resolution)
     key = hashlib.sha1(repr((GENERATOR_VERSION, case, h, Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM,
-                              SPLIT_MM, CROWN_MM, VESTIBULE_MM))
+                              SPLIT_MM, CROWN_MM, VESTIBULE_MM, MUSCLE_MM, SKIN_MM, FAT_HU))
                        .encode()).hexdigest()[:12]
     path = cache_dir() / f"{case_name}-{resolution}-{key}.npz"
     if path.exists():
         try:
             anatomy = Anatomy.load(path)
             anatomy.occlusion = case_occlusion(case)   # from the case, not the cache
-            anatomy.contact = SYNTHETIC_CONTACT
+            anatomy.contact, anatomy.material = SYNTHETIC_CONTACT, SYNTHETIC_MATERIAL
             return anatomy
         except MeshError:
             log.warning("cached mesh %s is unreadable; regenerating", path)
@@ -318,8 +336,8 @@ def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -
     return anatomy
 
 
-#: HU of the voxelised synthetic head (`synthetic_ct`): air, soft tissue, cortical bone.
-CT_HU = {"air": -1000, "tissue": 40, "bone": 1000}
+#: HU of the voxelised synthetic head (`synthetic_ct`): air, lean tissue, fat, cortical bone.
+CT_HU = {"air": -1000, "tissue": 40, "fat": -100, "bone": 1000}
 
 
 def synthetic_ct(case_name: str, voxel_mm: float = 1.0, margin_mm: float = 6.0):
@@ -334,7 +352,8 @@ def synthetic_ct(case_name: str, voxel_mm: float = 1.0, margin_mm: float = 6.0):
     axes = [np.arange(a, b + voxel_mm / 2, voxel_mm) for a, b in zip(lo, hi)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     d_skin, d_bone = _distances(CASES[case_name], g)
-    hu = np.where(d_bone < 0, CT_HU["bone"], np.where(d_skin < 0, CT_HU["tissue"], CT_HU["air"]))
+    soft = np.where(_is_fat(CASES[case_name], g), CT_HU["fat"], CT_HU["tissue"])
+    hu = np.where(d_bone < 0, CT_HU["bone"], np.where(d_skin < 0, soft, CT_HU["air"]))
     shape = tuple(len(a) for a in axes)
     return Volume(hu.reshape(shape).astype(np.int16), np.full(3, voxel_mm), lo,
                   f"{case_name} voxelised at {voxel_mm:g} mm")

@@ -147,6 +147,11 @@ def add_scene_args(ap, plan: bool = False):
                     "default of CT scenes) or glued (held like the rest of the bone, the "
                     "paper's model; the default of the synthetic heads and of meshes without "
                     "teeth)")
+    ap.add_argument("--material", default=None,
+                    help="the soft tissue: tissues (skin, fat and lean tissue per cell; the "
+                    "default of CT scenes), homogeneous (the paper's E = 5 kPa, nu = 0.47; "
+                    "the default of the synthetic heads and of meshes without tissue classes) "
+                    "or a .json file of per-tissue E (kPa) and nu (docs/anatomy.md)")
     ap.add_argument("--penalty", default=None, help="active penalty k, kPa/mm")
     ap.add_argument("--degree", type=int, default=1, choices=(1, 2),
                     help="Lagrange degree of the displacement (P2: ~7x the dofs, see BENCHMARKS)")
@@ -161,7 +166,8 @@ def scene_from_args(args, comm, plan: bool = False, groups: bool = True):
 
     kw = {"solver": args.solver, "comm": comm, "degree": args.degree,
           "newton": {"method": args.method}, "occlusion": args.occlusion,
-          "linear": args.treatment == "linear", "groups": groups, "contact": args.contact}
+          "linear": args.treatment == "linear", "groups": groups, "contact": args.contact,
+          "material": args.material}
     if args.params_used is not None:
         kw["params_used"] = names_list(args.params_used)
         kw["groups"] = True

@@ -112,6 +112,7 @@ def check_args(args) -> None:
         if args.cases is not None:
             among("cases", CASES)
         among("contacts", ("glued", "sliding"))
+        among("materials", ("homogeneous", "tissues"))
     elif args.what == "explorer":
         number("events", args.events, 1, 10000, integer=True)
         args.events = int(args.events)
@@ -164,6 +165,7 @@ def main():
     pp.add_argument("--resolutions", default="coarse,paper")
     pp.add_argument("--cases", default=None, help="comma-separated (default: all)")
     pp.add_argument("--contacts", default="glued,sliding")
+    pp.add_argument("--materials", default="homogeneous,tissues")
     c = sub.add_parser("ct", help="the CT pipeline on the example CTs, to a plan")
     c.add_argument("--cts", default="headsq,cranium")
     c.add_argument("--resolutions", default="coarse,paper")

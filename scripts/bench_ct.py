@@ -3,7 +3,8 @@
 For each CT and resolution, each step a fresh script process, as a user chains them:
 ``ct_scene.py`` (a fresh cache: every stage timed), ``simulate.py --mesh`` with a 5 mm
 advance of the moved bone (the soft-to-hard ratios of `scripts.bench_plausibility` where
-the landmarks exist), and ``plan.py --mesh`` to the CT's clinical goal (`CTS`).
+the landmarks exist), and ``plan.py --mesh`` to the CT's clinical goal (`CTS`), each with
+every tissue model of `MODELS`.
 """
 
 from __future__ import annotations
@@ -34,10 +35,11 @@ CTS = {
 }
 MOVE_MM = 5.0
 GOAL_S = 60.0
-#: How the tissue holds to the teeth, each simulated and planned (`inverse.scene.CONTACTS`).
-CONTACTS = ("glued", "sliding")
+#: The tissue models, each simulated and planned: how the tissue holds to the teeth
+#: (`inverse.scene.CONTACTS`) and its material (`fem.material`).
+MODELS = [(c, m) for m in ("homogeneous", "tissues") for c in ("glued", "sliding")]
 #: ct_scene.py's stages, in order ("frame": the head frame estimated on the whole CT).
-STAGES = ("read", "frame", "segment", "mesh", "classify", "landmarks")
+STAGES = ("read", "frame", "segment", "mesh", "classify", "landmarks", "tissues")
 
 
 def _run(script: str, args: list, env: dict) -> dict:
@@ -73,10 +75,11 @@ def ct(args) -> None:
 
     rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
     frames = {}   # CT -> its head frame's row
+    shares = []   # [CT, resolution, skin, fat, lean tissue]
     for name in args.cts.split(","):
         ct_path, scene, param, shift, plan_params = CTS[name]
         if not ct_path.exists():
-            rows.append([name, "", f"absent: {ct_path}"] + [""] * (len(STAGES) + 6))
+            rows.append([name, "", f"absent: {ct_path}"] + [""] * (len(STAGES) + 7))
             continue
         for res in args.resolutions.split(","):
             with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
@@ -85,7 +88,7 @@ def ct(args) -> None:
                 rep = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene),
                                            "--resolution", res, "--out", out], env)
                 if "error" in rep:
-                    rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 6))
+                    rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 7))
                     continue
                 t = rep["timings_s"]
                 stages[(name, res)] = {k: t.get(k, 0.0) for k in STAGES}
@@ -98,18 +101,21 @@ def ct(args) -> None:
                 if res == "paper":
                     goals.append(goal(f"CT to a paper-size scene, {name} (ct)", t["total"],
                                       "s", limit=GOAL_S, source="issue 16"))
+                shares.append([name, res, *(f"{rep['tissues'][k]:.3f}"
+                                            for k in ("skin", "fat", "muscle"))])
                 goal_lms = [k for k in shift if k in rep["landmarks"]]
                 targets = Path(out) / "targets.json"
                 axes = np.asarray(rep["head_frame"])[:3, :3]   # the goal is the face's
                 targets.write_text(json.dumps({k: (np.asarray(rep["landmarks"][k])
                                                    + axes @ shift[k]).tolist()
                                                for k in goal_lms}))
-                for contact in CONTACTS:
-                    sim = _run("simulate.py", ["--mesh", rep["mesh"], "--contact", contact,
+                for contact, material in MODELS:
+                    model = ["--contact", contact, "--material", material]
+                    sim = _run("simulate.py", ["--mesh", rep["mesh"], *model,
                                                "--p", f"{param}={MOVE_MM}"], env)
                     plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
-                                            "--landmarks", ",".join(goal_lms), "--contact",
-                                            contact, "--params-used", plan_params],
+                                            "--landmarks", ",".join(goal_lms), *model,
+                                            "--params-used", plan_params],
                                 env) if goal_lms else {"error": "none"}
                     fwd = "failed" if "error" in sim else \
                         f"{sim['timings_s']['total']:.1f} ({sim['newton_iterations']})"
@@ -120,12 +126,13 @@ def ct(args) -> None:
                     rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
                                  f"{rep['min_quality']:.3f}",
                                  *(f"{v:.1f}" for v in stages[(name, res)].values()),
-                                 f"**{t['total']:.1f}**", contact, fwd, pl])
+                                 f"**{t['total']:.1f}**", contact, material, fwd, pl])
                     if "error" not in sim:
                         for lm, rng, v in _ratios(sim, param):
                             ok = rng is None or rng[0] <= v <= rng[1]
-                            ratio_rows.append([name, res, param, contact, lm, "—" if rng is
-                                               None else f"{rng[0]:g}–{rng[1]:g}",
+                            ratio_rows.append([name, res, param, contact, material, lm,
+                                               "—" if rng is None else
+                                               f"{rng[0]:g}–{rng[1]:g}",
                                                f"{v:.2f}" if ok else f"**{v:.2f}** ✗"])
                     print(rows[-1], flush=True)
     body = header("CT scenes: from a CT volume to a plan", args) + [
@@ -134,12 +141,15 @@ def ct(args) -> None:
         f"with a {MOVE_MM:g} mm advance of the moved bone (headsq: both jaws in the CT's "
         "occlusion, `jaws.advance_mm`; Cranium: the LeFort I, `maxilla.advance_mm`; seconds "
         "and iterations), then `scripts/plan.py --mesh` to the CT's goal, each with the tissue "
-        "glued to the teeth and sliding on them (`--contact`) (headsq: Pg and Li "
+        "glued to the teeth and sliding on them (`--contact`), and with the paper's "
+        "homogeneous material and the tissues (`--material`: skin, fat and lean tissue per "
+        "cell, `meshes.tissue`; their volume shares are in the last table) (headsq: Pg and Li "
         "4 mm, Me 3 mm forward; Cranium: Sn 3 mm and Prn 0.6 mm forward; forward is the head "
         "frame's).",
         ""]
     body += table(["CT", "resolution", "vertices", "tets", "min quality", *STAGES, "total",
-                   "contact", "5 mm advance s (its)", "plan: mean distance, time"], rows)
+                   "contact", "material", "5 mm advance s (its)", "plan: mean distance, time"],
+                  rows)
     body += ["", "The head frame of each CT (`meshes.frame`, `ct.json`): its tilt from the "
              "scanner's axes (degrees, the treatment's convention: pitch > 0 the face turned "
              "up, roll > 0 the left side down, yaw > 0 the face turned to the patient's "
@@ -154,8 +164,11 @@ def ct(args) -> None:
              "lower incisors that both advance, while the published Li range is for a BSSO "
              "alone; Cranium's field of view ends through the upper lip, whose cut bottom "
              "face is free, so nothing below holds Ls back.", ""]
-    body += table(["CT", "resolution", "treatment", "contact", "landmark", "published",
-                   "ratio"], ratio_rows)
+    body += table(["CT", "resolution", "treatment", "contact", "material", "landmark",
+                   "published", "ratio"], ratio_rows)
+    body += ["", "Each CT's tissue classes (`ct_scene.py`'s report, `tissues`: the share of "
+             "the tissue's volume).", ""]
+    body += table(["CT", "resolution", "skin", "fat", "lean tissue"], shares)
 
     def draw(plt):
         plt.figure(figsize=(6, 3))

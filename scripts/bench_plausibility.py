@@ -1,8 +1,8 @@
 """``bench.py plausibility``: soft-to-hard movement ratios of the synthetic faces against the
 clinical literature (issue 15 §4).
 
-For every case, resolution and contact of the tissue on the teeth (glued, sliding), two
-treatments from rest, each a fresh ``scripts/simulate.py``:
+For every case, resolution, contact of the tissue on the teeth (glued, sliding) and material
+(homogeneous, tissues), two treatments from rest, each a fresh ``scripts/simulate.py``:
 a 5 mm BSSO advance (``mandible.advance_mm``) and a 5 mm LeFort I advance en bloc
 (``maxilla.advance_mm``). A ratio is the landmark's forward motion (+y of the head frame,
 `meshes.frame`) over the bone's 5 mm (a translation: incisors, B and A points, bony pogonion
@@ -23,14 +23,14 @@ RATIOS = [
 MOVE_MM = 5.0
 
 
-def ratios(simulate, case: str, res: str, contact: str) -> tuple[dict, dict]:
+def ratios(simulate, case: str, res: str, model: list) -> tuple[dict, dict]:
     """({(param, landmark, axis): ratio}, {param: forward s}) from two simulate.py runs
-    (``simulate(args)``) with the tissue ``contact`` on the teeth."""
+    (``simulate(args)``) with the options ``model`` (e.g. ``["--contact", "glued"]``)."""
 
     out, times = {}, {}
     for param in dict.fromkeys(r[0] for r in RATIOS):
         rep = simulate(["--case", case, "--resolution", res, "--params-used",
-                        "mandible.advance_mm,maxilla.advance_mm", "--contact", contact, "--p",
+                        "mandible.advance_mm,maxilla.advance_mm", *model, "--p",
                         f"{param}={MOVE_MM}"])
         if "error" in rep:
             raise SystemExit(f"{case}/{res} {param}: {rep['error']}")
@@ -55,35 +55,38 @@ def plausibility(args) -> None:
     from scripts._bench import header, simulate, table, write_section
 
     cases = args.cases.split(",") if args.cases else sorted(CASES)
-    contacts = args.contacts.split(",")
+    models = [(c, m) for m in args.materials.split(",") for c in args.contacts.split(",")]
     head = ["treatment", "landmark", "published", "source"]
     cols, rows = [], {i: [] for i in range(len(RATIOS))}
     time_rows = {k: [] for k in ("BSSO 5 mm forward s", "LeFort I 5 mm forward s",
                                  "plan to the case's goal s")}
     for res in args.resolutions.split(","):
         for case in cases:
-            for contact in contacts:
-                cols.append(f"{case} {res} {contact}")
+            for contact, material in models:
+                cols.append(f"{case} {res} {contact} {material}")
+                model = ["--contact", contact, "--material", material]
                 r, times = ratios(lambda a: simulate(res, "direct", 1, args=a), case, res,
-                                  contact)
+                                  model)
                 for i, (p, lm, axis, rng, _) in enumerate(RATIOS):
                     v = r[(p, lm, axis)]
                     ok = rng is None or rng[0] <= v <= rng[1]
                     rows[i].append(f"{v:.2f}" if ok else f"**{v:.2f}** ✗")
                 plan = simulate(res, "direct", 1, script="plan.py", args=[
-                    "--case", case, "--resolution", res, "--contact", contact])
+                    "--case", case, "--resolution", res, *model])
                 fwd = [f"{times[p]:.1f}" for p in ("mandible.advance_mm", "maxilla.advance_mm")]
                 for key, v in zip(time_rows, fwd + [
                         plan.get("error", "")[:30] if "error" in plan else
                         f"{plan['timings_s']['total']:.1f}"]):
                     time_rows[key].append(v)
-                print(res, case, contact, {k: round(v, 2) for k, v in r.items()}, fwd,
+                print(res, case, contact, material, {k: round(v, 2) for k, v in r.items()}, fwd,
                       flush=True)
     body = header("Plausibility: soft-to-hard movement ratios (synthetic faces)", args) + [
         "Each column: a 5 mm BSSO advance (`mandible.advance_mm=5`) and a 5 mm LeFort I "
         "advance (`maxilla.advance_mm=5`) from rest, one `scripts/simulate.py` each, with the "
         "tissue on the teeth `--contact glued` (the paper's model) or `sliding` (the "
-        "default: `meshes.teeth`, docs/decisions.md); a ratio is the soft-tissue "
+        "default of CT scenes: `meshes.teeth`, docs/decisions.md), and the paper's "
+        "`--material homogeneous` or `tissues` (skin, fat and lean tissue per cell: "
+        "`meshes.tissue`, `fem.material.Tissues`); a ratio is the soft-tissue "
         "landmark's forward motion over the bone's 5 mm (the nasal tip's elevation on the "
         "last row). ✗: outside the published range. Below the ratios: the two advances' "
         "times and `scripts/plan.py` to the case's built-in goal (one process each, 1 "

@@ -82,7 +82,8 @@ def main(argv=None):
             "mesh": str(mesh), "n_vertices": anatomy.n_vertices, "n_cells": anatomy.n_cells,
             "segments": {n: int(np.isin(anatomy.facet_tags, segment_tags(tag)).sum())
                          for n, tag in anatomy.segments.items()},
-            "teeth": teeth_report(anatomy),
+            "teeth": teeth_report(anatomy), "tissues": info["tissues"],
+            "material": anatomy.material,
             "skin_facets": int((anatomy.facet_tags == SKIN).sum()),
             "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
             "min_quality": info["min_quality"], "voxel_mm": info["voxel_mm"],

@@ -95,8 +95,8 @@ def main(argv=None):
 
 
 def _apply_report(args, argv, report: dict) -> None:
-    """A plan report's case, resolution, occlusion, contact and parameters, where no option
-    gives them."""
+    """A plan report's case, resolution, occlusion, contact, material and parameters, where no
+    option gives them."""
     from meshes.errors import InputError
 
     if not isinstance(report, dict) or not {"param_names", "params_optimal"} <= set(report):
@@ -107,8 +107,9 @@ def _apply_report(args, argv, report: dict) -> None:
             setattr(args, key, report[key])
     if "--occlusion" not in given:
         args.occlusion = "free" if report.get("occlusion") is None else "final"
-    if "--contact" not in given and report.get("contact"):
-        args.contact = report["contact"]
+    for key in ("contact", "material"):
+        if f"--{key}" not in given and report.get(key):
+            setattr(args, key, report[key])
     if "--params-used" not in given:
         args.params_used = ",".join(report["param_names"])
 

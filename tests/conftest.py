@@ -51,14 +51,16 @@ def mandible_scene(tiny_anatomy):
 
 @pytest.fixture(scope="session")
 def _tight_scenes(tiny_anatomy):
-    """{contact: scene} of `tight_scene`, built on first use."""
+    """{(contact, material): scene} of `tight_scene`, built on first use."""
     scenes = {}
 
-    def get(contact):
-        if contact not in scenes:
-            scenes[contact] = _mandible_only(tiny_anatomy, newton=TIGHT, contact=contact)
-            scenes[contact].case, scenes[contact].resolution = "class3", "tiny"
-        return scenes[contact]
+    def get(contact, material="homogeneous"):
+        key = (contact, material)
+        if key not in scenes:
+            scenes[key] = _mandible_only(tiny_anatomy, newton=TIGHT, contact=contact,
+                                         material=material)
+            scenes[key].case, scenes[key].resolution = "class3", "tiny"
+        return scenes[key]
     return get
 
 
@@ -104,3 +106,11 @@ def central_differences():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture
+def tight_tissues(_tight_scenes):
+    """`tight_sliding` with the tissue classes' materials (skin, fat, lean tissue)."""
+    scene = _tight_scenes("sliding", "tissues")
+    yield scene
+    scene.solve(np.zeros(6))

@@ -72,7 +72,8 @@ def test_ct_of_a_synthetic_head_matches_the_head(synthetic_ct, cache):
     """The pipeline on a CT made from the synthetic class1 head (medium): the landmarks built
     on its profile lie within 1.5 voxels of the same construction on the head's own mesh, the
     segments' areas within 10 %, and a 5 mm BSSO advance moves the landmarks as on the head
-    within 0.3 mm."""
+    within 0.3 mm, both with the tissue classes, which agree within 0.03 of the tissue's
+    volume per class."""
     from inverse.scene import Scene
     from meshes.anatomy import SKIN, segment_tags
     from meshes.ct import ct_anatomy
@@ -102,9 +103,14 @@ def test_ct_of_a_synthetic_head_matches_the_head(synthetic_ct, cache):
         assert abs(a_ct[n] / a_head[n] - 1) < 0.10, (n, a_ct[n], a_head[n])
     # the same anatomical points on the head's mesh
     attach_landmarks(head, got.landmark_positions(), tol=1.5 * VOXEL_MM)
+    from meshes.tissue import tissue_report
+
+    shares = tissue_report(got), tissue_report(head)
+    for k in shares[0]:
+        assert abs(shares[0][k] - shares[1][k]) < 0.03, shares
     moved = {}
     for name, anatomy in (("ct", got), ("head", head)):
-        scene = Scene(anatomy, params_used=["mandible.advance_mm"])
+        scene = Scene(anatomy, params_used=["mandible.advance_mm"], material="tissues")
         rest = scene.landmarks(rest=True)
         scene.solve({"mandible.advance_mm": 5.0})
         moved[name] = {k: v - rest[k] for k, v in scene.landmarks().items()}
@@ -228,17 +234,27 @@ def test_dicom_series_folder_reads_back_in_the_scene_frame(tmp_path):
 
 def test_label_map_input(tmp_path, cache):
     """A label map (1 tissue, 2 bone, as a 3D Slicer segmentation) gives the scene the CT of
-    the same head gives: the same segments and landmarks."""
+    the same head gives: the same segments and landmarks. Without a fat label it has no
+    tissue classes (homogeneous); with one (3: fat) its classes are the CT's."""
     from meshes.ct import ct_anatomy
     from meshes.synthetic import CT_HU
+    from meshes.tissue import tissue_report
 
     ct = _small_ct(tmp_path)
-    labels = _small_ct(tmp_path, lambda a, v: a.__setitem__(
-        ..., np.where(a >= CT_HU["bone"], 2, np.where(a >= CT_HU["tissue"], 1, 0))),
-        name="labels.mha")
-    scene = _scene_file(tmp_path)
-    from_ct, _ = ct_anatomy(ct, scene)
-    from_map, _ = ct_anatomy(labels, scene, labelmap=True)
+
+    def to_labels(a, v):
+        a[...] = np.where(a >= CT_HU["bone"], 2, np.where(a == CT_HU["fat"], 3,
+                                                          np.where(a > -400, 1, 0)))
+
+    labels = _small_ct(tmp_path, to_labels, name="labels.mha")
+    from_ct, _ = ct_anatomy(ct, _scene_file(tmp_path))
+    plain, _ = ct_anatomy(labels, _scene_file(tmp_path, labels={"tissue": [1, 3]}))
+    from_map, _ = ct_anatomy(labels, _scene_file(tmp_path, labels={"fat": 3}))
+    assert from_ct.material == from_map.material == "tissues" and plain.tissues is None
+    assert plain.material == "homogeneous"
+    share_ct, share_map = tissue_report(from_ct), tissue_report(from_map)
+    for k in share_ct:   # the two meshes differ a little: the same shares of each class
+        assert abs(share_map[k] - share_ct[k]) < 0.02, (share_map, share_ct)
     assert from_map.segments == from_ct.segments
     assert set(from_map.landmarks) == set(from_ct.landmarks)
     for k, x in from_ct.landmark_positions().items():
@@ -264,6 +280,15 @@ def _plan_recovers(tmp_path, mesh, p_star: dict, landmarks, n_landmarks_min=2):
     assert max(v["distance_after_mm"] for v in plan["landmarks"].values()) <= 0.01
     np.testing.assert_allclose(plan["params_optimal"], list(p_star.values()), rtol=1e-3,
                                atol=1e-3)
+
+
+def _check_tissues(rep: dict, sim: dict):
+    """A CT scene has skin, fat and lean tissue (`meshes.tissue`), and simulates with them
+    by default."""
+    assert rep["material"] == sim["material"] == "tissues"
+    shares = rep["tissues"]
+    assert abs(sum(shares.values()) - 1) < 1e-3
+    assert shares["skin"] > 0.02 and shares["fat"] > 0.05 and shares["muscle"] > 0.3, shares
 
 
 def _check_teeth(rep: dict, segments: set):
@@ -293,6 +318,7 @@ def test_cranium_lefort_scene_through_the_scripts(tmp_path, cache):
     sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "maxilla.advance_mm=5"])
     assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
     assert sim["contact"] == "sliding"
+    _check_tissues(rep, sim)
     _plan_recovers(tmp_path, rep["mesh"], {"maxilla.advance_mm": 4.0, "maxilla.vertical_mm":
                                            -1.5}, sorted(rep["landmarks"]))
 
@@ -319,6 +345,7 @@ def test_headsq_double_jaw_scene_through_the_scripts(tmp_path, cache):
     sim = _simulate(tmp_path, "advance", ["--mesh", rep["mesh"], "--p", "jaws.advance_mm=5"])
     assert sim["converged"] and sim["active_goal_error_max_mm"] < 0.05
     assert sim["contact"] == "sliding"
+    _check_tissues(rep, sim)
     _plan_recovers(tmp_path, rep["mesh"], {"jaws.advance_mm": 3.0, "jaws.pitch_deg": 2.0},
                    sorted(rep["landmarks"]))
     targets = tmp_path / "t.json"

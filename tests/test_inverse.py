@@ -14,9 +14,11 @@ def scene(tight_scene):
     return tight_scene
 
 
-#: Both contacts, for the derivative checks: ``request.getfixturevalue`` of each scene.
-CONTACT_SCENES = pytest.mark.parametrize("contact_scene", ["tight_sliding", "tight_scene"],
-                                         ids=["sliding", "glued"])
+#: Both contacts, and the tissues' materials, for the derivative checks
+#: (``request.getfixturevalue`` of each scene).
+CONTACT_SCENES = pytest.mark.parametrize(
+    "contact_scene", ["tight_sliding", "tight_scene", "tight_tissues"],
+    ids=["sliding", "glued", "sliding-tissues"])
 
 
 P0 = np.array([3.0, -1.0, 1.0, 2.0, 1.0, -2.0])

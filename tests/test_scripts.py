@@ -145,14 +145,17 @@ def test_plan_default_goal_report(tmp_path):
 
 
 @pytest.mark.mpi
-def test_plan_same_on_1_and_2_ranks(tmp_path):
-    """Targets from a forward solve at a known p*; the plans on 1 and 2 ranks agree."""
+@pytest.mark.parametrize("model", [[], ["--contact", "sliding", "--material", "tissues"]],
+                         ids=["default", "sliding-tissues"])
+def test_plan_same_on_1_and_2_ranks(tmp_path, model):
+    """Targets from simulate.py at a known p*; plan.py recovers p* on 1 and 2 ranks, the
+    same; with the default model and with the lips sliding on tissues' materials."""
     used = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
     sim = tmp_path / "sim.json"
     r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
                         used, "--p", "mandible.advance_mm=-3", "mandible.lateral_mm=-1.5",
                         "mandible.yaw_deg=-2", "maxilla_L.advance_mm=1.5", "--report",
-                        str(sim)])
+                        str(sim), *model])
     assert r.returncode == 0, r.stderr[-2000:]
     targets = tmp_path / "t.json"
     targets.write_text(json.dumps(json.loads(sim.read_text())["landmarks"]))
@@ -161,7 +164,7 @@ def test_plan_same_on_1_and_2_ranks(tmp_path):
         rep = tmp_path / f"r{n}.json"
         r = _run(_mpirun(n) + PLAN + ["--targets", str(targets), "--landmarks", "Pg,Li,Ls",
                                       "--params-used", used, "--tikhonov", "0", "--ftol",
-                                      "1e-10", "--report", str(rep)])
+                                      "1e-10", "--report", str(rep), *model])
         assert r.returncode == 0, r.stderr[-2000:]
         reports[n] = json.loads(rep.read_text())
     assert reports[2]["n_ranks"] == 2
