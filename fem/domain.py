@@ -110,23 +110,29 @@ class Domain:
         """Landmark operator for the named landmarks (in that order)."""
         return PointOperator.build(self, [self.landmarks[n] for n in names])
 
-    def skin_vertices(self) -> np.ndarray:
-        """Sorted original indices (K,) of all skin vertices, the same on every rank."""
+    def skin_vertices(self, tags=None) -> np.ndarray:
+        """Sorted original indices (K,) of all vertices on facets with ``tags`` (default: the
+        skin), the same on every rank. Collective."""
         from meshes.anatomy import SKIN
 
-        mine = self.input_index[self.facet_blocks([SKIN])]
+        mine = self.input_index[self.facet_blocks([SKIN] if tags is None else tags)]
         mine = mine[mine >= 0]   # vertices, not edge midpoints
         return np.unique(np.concatenate(self.comm.allgather(mine)))
 
-    def skin_triangles(self, vertices: np.ndarray) -> np.ndarray:
-        """Skin triangles (F, 3) as positions in ``vertices`` (from `skin_vertices`)."""
+    def skin_triangles(self, vertices: np.ndarray, tags=None) -> np.ndarray:
+        """Triangles (F, 3) of the facets with ``tags`` (default: the skin) as positions in
+        ``vertices`` (from `skin_vertices` of the same tags). Collective."""
         from meshes.anatomy import SKIN
 
-        facets = self.facet_tags.indices[self.facet_tags.values == SKIN]
-        nodes = _cpp.mesh.entities_to_geometry(compat.cpp_mesh(self.mesh), 2, facets, False)
+        facets = self.facet_tags.indices[np.isin(self.facet_tags.values,
+                                                 [SKIN] if tags is None else list(tags))]
+        # oriented out of the tissue (dolfinx orients boundary facets), for smooth shading
+        nodes = _cpp.mesh.entities_to_geometry(compat.cpp_mesh(self.mesh), 2, facets, True)
         glob = np.asarray(self.mesh.geometry.input_global_indices, dtype=np.int64)[nodes]
-        tri = np.unique(np.sort(np.concatenate(self.comm.allgather(glob.reshape(-1, 3))),
-                                axis=1), axis=0)
+        tri = np.concatenate(self.comm.allgather(glob.reshape(-1, 3)))
+        start = tri.argmin(axis=1)   # the same on any ranks: the lowest vertex first
+        tri = tri[np.arange(len(tri))[:, None], (start[:, None] + np.arange(3)) % 3]
+        tri = np.unique(tri, axis=0)   # ghost facets, gathered twice
         return np.searchsorted(vertices, tri)
 
     def vertex_operator(self, vertices) -> "PointOperator":

@@ -113,8 +113,9 @@ class Session:
     def payload(self) -> dict:
         """The scene as the page needs it (GET /api/scene): parameters, skin triangles,
         skin at rest and at p0 (N, 3) mm, landmarks at p0 and their sensitivities
-        (L, 3, Np) mm per unit, targets, and the head's axes (``head_axes``: left, anterior,
-        superior, scene frame) for the page's Front and Profile views."""
+        (L, 3, Np) mm per unit, targets, the head's axes (``head_axes``: left, anterior,
+        superior, scene frame) for the page's Front and Profile views, and the bone
+        (`_bone`)."""
         scene, pred = self.scene, self.pred
         tr = scene.treatment
         return {"param_names": tr.names, "units": [q.unit for q in tr.params],
@@ -125,7 +126,32 @@ class Session:
                 "landmarks": {n: x.tolist() for n, x in zip(pred.landmark_names, pred.lm0)},
                 "landmark_sensitivity": pred.lm_S.tolist(),
                 "targets": self.targets,
-                "head_axes": scene.head_frame.rotation.T.tolist()}
+                "head_axes": scene.head_frame.rotation.T.tolist(),
+                "bone": self._bone()}
+
+    def _bone(self) -> dict:
+        """The bone under the skin for the page (GET /api/scene's ``bone``): its surface at
+        rest (``vertices`` (B, 3) mm, ``triangles`` (F, 3) facing out of the bone), each
+        vertex's segment (``segment`` (B,), an index into ``segments``, -1: bone that stays
+        put), and each segment's motion at p0 and its derivatives (``transforms`` (4, 4) and
+        ``transform_derivatives`` (Np, 4, 4) per unit, exact), from which the page draws the
+        bone at first order, as the skin. Collective."""
+        from meshes.anatomy import FIXED, FREE_BONE, segment_tags
+
+        scene, dom = self.scene, self.scene.domain
+        segments = list(dom.segments)
+        tags = [FIXED, FREE_BONE, *(t for s in segments for t in segment_tags(dom.segments[s]))]
+        verts = dom.skin_vertices(tags)
+        x = dom.vertex_operator(verts).apply(np.zeros(dom.X.size))
+        which = np.full(len(verts), -1)
+        for k, name in enumerate(segments):
+            which[np.isin(verts, dom.skin_vertices(segment_tags(dom.segments[name])))] = k
+        T, dT = scene.treatment.transforms(self.pred.p0, dom.pivots, derivatives=True)
+        return {"vertices": x.tolist(),
+                "triangles": dom.skin_triangles(verts, tags)[:, ::-1].tolist(),
+                "segment": which.tolist(), "segments": segments,
+                "transforms": [T[s].tolist() for s in segments],
+                "transform_derivatives": [dT[s].tolist() for s in segments]}
 
     def sensitivity_bytes(self) -> bytes:
         """S_skin (N, 3, Np) as little-endian float32 in C order (GET /api/sensitivity)."""

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from test_scripts import ROOT, _mpirun, _run
 
+import scripts._launch as launch
 from scripts._launch import chromium, explorer, request, set_params, wait_ready
 
 CASE = ["--case", "class3", "--resolution", "tiny"]
@@ -25,11 +26,12 @@ def _python(script_args):
     return [sys.executable, *script_args]
 
 
-def _scene(url):
-    status, scene = request(url + "api/scene")
+def _scene(url, synthetic=True):
+    status, scene = launch.request(url + "api/scene")
     assert status == 200
-    assert np.allclose(scene["head_axes"], np.eye(3))   # a synthetic head: its own frame
-    status, raw = request(url + "api/sensitivity")
+    if synthetic:   # a synthetic head: its own frame
+        assert np.allclose(scene["head_axes"], np.eye(3))
+    status, raw = launch.request(url + "api/sensitivity")
     assert status == 200
     S = np.frombuffer(raw, dtype="<f4").reshape(len(scene["vertices"]), 3,
                                                  len(scene["param_names"]))
@@ -206,13 +208,53 @@ def test_same_answers_on_1_and_2_ranks():
     np.testing.assert_allclose(c2["vertices"], c1["vertices"], atol=1e-4)
 
 
-def test_the_page_in_headless_chromium(tmp_path):
-    """Real Chromium (SwiftShader WebGL): the page loads, a slider move draws x0 + S dp
-    (1e-3 mm of the API's), Solve shows the first-order error map with the API's maximum,
-    and the console has no error. Saves a screenshot (ORTHODIFF_SCREENSHOT or tmp)."""
+def _first_order_bone(scene, p: dict) -> np.ndarray:
+    """The bone's vertices (B, 3) at p to first order: each segment's T0 + dT dp."""
+    b = scene["bone"]
+    dp = np.array([p.get(n, p0) - p0 for n, p0 in zip(scene["param_names"], scene["p0"])])
+    x = np.asarray(b["vertices"])
+    out = x.copy()
+    for k, (T0, dT) in enumerate(zip(b["transforms"], b["transform_derivatives"])):
+        A = np.asarray(T0) + np.tensordot(dp, np.asarray(dT), axes=1)
+        on = np.asarray(b["segment"]) == k
+        out[on] = x[on] @ A[:3, :3].T + A[:3, 3]
+    return out
+
+
+@pytest.fixture(scope="module")
+def cranium_scene(tmp_path_factory):
+    """Cranium.inv3 (Debian's invesalius-examples) through ct_scene.py at coarse: the mesh."""
+    from test_ct import CRANIUM, CT_SCENE, EXAMPLES
+
+    if not CRANIUM.exists():
+        pytest.skip(f"{CRANIUM} is absent (Debian's invesalius-examples; `make test` "
+                    "installs it)")
+    out = tmp_path_factory.mktemp("cranium")
+    r = _run(CT_SCENE + ["--ct", str(CRANIUM), "--osteotomies", str(EXAMPLES / "cranium.json"),
+                         "--resolution", "coarse", "--out", str(out)],
+             env=dict(os.environ, ORTHODIFF_CACHE=str(out / "cache")))
+    assert r.returncode == 0, r.stderr[-2000:]
+    return out / "scene.vtu"
+
+
+@pytest.mark.parametrize("which", ["synthetic", "cranium"])
+def test_the_page_in_headless_chromium(request, tmp_path, which):
+    """Real Chromium (SwiftShader WebGL), on the synthetic head and on the Cranium CT's
+    scene: the page loads in a skin tone; a slider move draws x0 + S dp (1e-3 mm of the
+    API's); the bone toggle shows the segments moved by their first-order motion under a
+    see-through skin; Solve shows the first-order error map with the API's maximum; the
+    console has no error. Saves the skin and the bone (ORTHODIFF_SCREENSHOT or tmp, per
+    scene)."""
     shot = Path(os.environ.get("ORTHODIFF_SCREENSHOT", tmp_path / "explorer.png"))
-    with explorer(CASE) as (url, proc):
-        scene, S = _scene(url)
+    shot = shot if which == "synthetic" else shot.with_name(f"{shot.stem}_{which}.png")
+    if which == "synthetic":
+        args, p = CASE, {"mandible.advance_mm": 3.0, "mandible.yaw_deg": -2.0}
+    else:
+        args = ["--mesh", str(request.getfixturevalue("cranium_scene")), "--params-used",
+                "maxilla.advance_mm,maxilla.vertical_mm,maxilla.pitch_deg"]
+        p = {"maxilla.advance_mm": 3.0, "maxilla.pitch_deg": 2.0}
+    with explorer(args) as (url, proc):
+        scene, S = _scene(url, synthetic=which == "synthetic")
         driver = chromium()
         try:
             driver.get(url)
@@ -220,12 +262,26 @@ def test_the_page_in_headless_chromium(tmp_path):
             loaded = driver.execute_script("return performance.getEntriesByType('resource')"
                                            ".map(e => e.name)")
             assert loaded and all(u.startswith(url) for u in loaded), loaded   # no CDN
-            p = {"mandible.advance_mm": 3.0, "mandible.yaw_deg": -2.0}
+            assert driver.find_element("id", "colour").get_attribute("value") == "skin"
+            assert not driver.find_element("id", "legend").is_displayed()
             frame_ms = set_params(driver, p)
             assert frame_ms > 0
             drawn = np.asarray(driver.execute_script(
                 "return Array.from(window.explorer.skinPositions())")).reshape(-1, 3)
             np.testing.assert_allclose(drawn, _first_order(scene, S, p), atol=1e-3)
+            shot.parent.mkdir(parents=True, exist_ok=True)
+            driver.save_screenshot(str(shot))
+            assert driver.execute_script("return window.explorer.bonePositions()") is None
+            driver.execute_script("return window.explorer.showBone(true)")
+            bone = np.asarray(driver.execute_script(
+                "return Array.from(window.explorer.bonePositions())")).reshape(-1, 3)
+            np.testing.assert_allclose(bone, _first_order_bone(scene, p), atol=1e-3)
+            moved = np.linalg.norm(bone - np.asarray(scene["bone"]["vertices"]), axis=1)
+            still = np.asarray(scene["bone"]["segment"]) < 0   # the skull and the free bone
+            assert moved.max() > 2.0 and still.mean() > 0.1 and moved[still].max() < 1e-4
+            assert driver.execute_script("return window.explorer.skinOpacity()") < 1
+            driver.save_screenshot(str(shot.with_name(shot.stem + "_bone.png")))
+            driver.execute_script("return window.explorer.showBone(false)")
             driver.find_element("id", "solve").click()
             t0 = time.monotonic()
             while "first-order error max" not in driver.find_element("id", "status").text:
@@ -234,10 +290,8 @@ def test_the_page_in_headless_chromium(tmp_path):
             legend = driver.find_element("id", "legend-title").text
             assert "first-order error" in legend
             shown_max = driver.execute_script("return window.explorer.errorMapMax()")
-            status, out = request(url + "api/solve", {"p": p})
+            status, out = launch.request(url + "api/solve", {"p": p})
             assert shown_max == pytest.approx(out["first_order_error_max_mm"], abs=1e-3)
-            shot.parent.mkdir(parents=True, exist_ok=True)
-            driver.save_screenshot(str(shot))
             errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
             assert not errors, errors
             assert driver.execute_script("return window.explorer.lastError") is None

@@ -11,11 +11,14 @@ const STOPS = [0x30123b, 0x4686fb, 0x1be5b5, 0xa4fc3c, 0xfb8022, 0x7a0403].map((
   const c = new THREE.Color(hex);   // converted from sRGB to the working (linear) space
   return [c.r, c.g, c.b];
 });
+const SKIN = new THREE.Color(0xe2b59c);   // a skin tone (sRGB), the default colour
+const BONE = 0xebe4d2;                    // ivory
 
 const state = {
   names: [], units: [], bounds: [], p0: null, p: null,
   x0: null, rest: null, S: null, nP: 0, nV: 0,
   lm0: null, lmS: null, lmNames: [], targets: null,
+  bone: null,         // the bone under the skin (GET /api/scene's bone), drawn on demand
   shown: null,        // Float32Array (nV*3) drawn now: the prediction, or a solve's answer
   error: null,        // per-vertex |answer - prediction| after Solve/Corrected, else null
   pending: null,      // timeStamp of the slider event waiting for its frame
@@ -30,6 +33,10 @@ const explorer = {
   skinPositions: () => Float32Array.from(state.shown),
   params: () => Object.fromEntries(state.names.map((n, i) => [n, state.p[i]])),
   errorMapMax: () => (state.error ? state.error.reduce((a, b) => Math.max(a, b), 0) : null),
+  showBone: (on) => { $('bone').checked = on; return showBone(); },
+  bonePositions: () => (boneMesh.visible
+    ? Float32Array.from(boneGeometry.getAttribute('position').array) : null),
+  skinOpacity: () => mesh.material.opacity,
   lastError: null,
 };
 window.explorer = explorer;
@@ -53,6 +60,11 @@ const mesh = new THREE.Mesh(geometry, new THREE.MeshLambertMaterial(
   { vertexColors: true, side: THREE.DoubleSide }));
 mesh.frustumCulled = false;   // the skin moves: its bounding sphere is the rest one's
 scene3.add(mesh);
+const boneGeometry = new THREE.BufferGeometry();
+const boneMesh = new THREE.Mesh(boneGeometry, new THREE.MeshLambertMaterial({ color: BONE }));
+boneMesh.frustumCulled = false;
+boneMesh.visible = false;
+scene3.add(boneMesh);
 const markers = new THREE.Group();
 scene3.add(markers);
 let center = new THREE.Vector3(), radius = 100;
@@ -104,6 +116,12 @@ async function loadScene() {
   state.lmS = Float64Array.from(s.landmark_sensitivity.flat(2));   // (L, 3, nP)
   state.targets = s.targets;
   headAxes = s.head_axes.map((a) => new THREE.Vector3(...a));
+  state.bone = {
+    rest: Float64Array.from(s.bone.vertices.flat()), segment: Int32Array.from(s.bone.segment),
+    T: s.bone.transforms, dT: s.bone.transform_derivatives };
+  boneGeometry.setAttribute('position', new THREE.BufferAttribute(
+    new Float32Array(state.bone.rest.length), 3));
+  boneGeometry.setIndex(s.bone.triangles.flat());
   $('occlusion').value = s.occlusion;
   const first = geometry.getAttribute('position') === undefined
     || geometry.getAttribute('position').count !== state.nV;
@@ -164,6 +182,11 @@ function colourise() {
   if (state.error) {
     value = (i) => state.error[i];
     title = 'first-order error |true - x0 - S dp| mm';
+  } else if ($('colour').value === 'skin') {
+    for (let i = 0; i < n; i++) { col[3 * i] = SKIN.r; col[3 * i + 1] = SKIN.g; col[3 * i + 2] = SKIN.b; }
+    geometry.getAttribute('color').needsUpdate = true;
+    $('legend').hidden = true;
+    return;
   } else {
     const ref = $('colour').value === 'rest' ? state.rest : state.x0;
     value = (i) => Math.hypot(x[3 * i] - ref[3 * i], x[3 * i + 1] - ref[3 * i + 1],
@@ -183,6 +206,7 @@ function colourise() {
     col[3 * i + 2] = a[2] + f * (b[2] - a[2]);
   }
   geometry.getAttribute('color').needsUpdate = true;
+  $('legend').hidden = false;
   $('legend-title').textContent = title;
   $('legend-hi').textContent = hi.toFixed(2);
 }
@@ -222,12 +246,37 @@ function updateLandmarks(points) {
     '<tr><td colspan="2">no targets</td></tr>';
 }
 
-function vertexNormals() {   // area-weighted, in typed arrays (3x faster than three's own)
-  const x = geometry.getAttribute('position').array, idx = geometry.getIndex().array;
-  if (!geometry.getAttribute('normal')) {
-    geometry.setAttribute('normal', new THREE.BufferAttribute(new Float32Array(x.length), 3));
+function showBone() {   // the bone under a see-through skin, or the skin alone
+  const on = $('bone').checked;
+  boneMesh.visible = on;
+  Object.assign(mesh.material, { transparent: on, opacity: on ? 0.35 : 1, depthWrite: !on });
+  mesh.material.needsUpdate = true;
+  return requestFrame();
+}
+
+function placeBone() {   // each segment's vertices by its motion at first order, T0 + dT dp
+  const b = state.bone, d = dp(), x = boneGeometry.getAttribute('position').array;
+  const A = b.T.map((T0, k) => T0.map((row, r) => row.map((v, c) => {
+    let a = v;
+    for (let j = 0; j < state.nP; j++) if (d[j] !== 0) a += b.dT[k][j][r][c] * d[j];
+    return a;
+  })));
+  for (let i = 0; i < b.segment.length; i++) {
+    const k = b.segment[i], X = b.rest[3 * i], Y = b.rest[3 * i + 1], Z = b.rest[3 * i + 2];
+    if (k < 0) { x[3 * i] = X; x[3 * i + 1] = Y; x[3 * i + 2] = Z; continue; }
+    const M = A[k];
+    for (let r = 0; r < 3; r++) x[3 * i + r] = M[r][0] * X + M[r][1] * Y + M[r][2] * Z + M[r][3];
   }
-  const n = geometry.getAttribute('normal').array;
+  boneGeometry.getAttribute('position').needsUpdate = true;
+  vertexNormals(boneGeometry);
+}
+
+function vertexNormals(geom = geometry) {   // area-weighted, typed arrays (3x faster than three's)
+  const x = geom.getAttribute('position').array, idx = geom.getIndex().array;
+  if (!geom.getAttribute('normal')) {
+    geom.setAttribute('normal', new THREE.BufferAttribute(new Float32Array(x.length), 3));
+  }
+  const n = geom.getAttribute('normal').array;
   n.fill(0);
   for (let t = 0; t < idx.length; t += 3) {
     const a = 3 * idx[t], b = 3 * idx[t + 1], c = 3 * idx[t + 2];
@@ -242,7 +291,7 @@ function vertexNormals() {   // area-weighted, in typed arrays (3x faster than t
     const l = Math.hypot(n[i], n[i + 1], n[i + 2]) || 1;
     n[i] /= l; n[i + 1] /= l; n[i + 2] /= l;
   }
-  geometry.getAttribute('normal').needsUpdate = true;
+  geom.getAttribute('normal').needsUpdate = true;
 }
 
 let frameQueued = false, frameResolvers = [];
@@ -259,6 +308,7 @@ function draw() {
     geometry.getAttribute('position').needsUpdate = true;
     vertexNormals();
     colourise();
+    if (boneMesh.visible) placeBone();
     if (!state.answerLandmarks) updateLandmarks(predictedLandmarks());
   }
   sun.position.copy(camera.position);
@@ -418,6 +468,7 @@ function wire() {
   $('front').onclick = () => look('front');
   $('profile').onclick = () => look('profile');
   $('colour').onchange = () => requestFrame();
+  $('bone').onchange = showBone;
   $('solve').onclick = () => action('Solve', async () =>
     showAnswer(await api('/api/solve', { p: explorer.params() }), 'true equilibrium'));
   $('corrected').onclick = () => action('Corrected', async () =>
