@@ -43,10 +43,12 @@ $(WEB)/node_modules/.installed: $(WEB)/package.json $(WEB)/package-lock.json .de
 demo: install
 	$(PY) scripts/demo.py
 
-# The browser explorer on the demo's plan (planned first if out/demo has none).
+# The browser explorer on the demo's real face (planned first if out/demo has none);
+# the synthetic one: `make explore PLAN=out/demo/class3-asym/report.json`.
+PLAN ?= out/demo/cranium/report.json
 explore: install
-	@test -f out/demo/report.json || $(PY) scripts/demo.py
-	$(PY) scripts/explore_web.py --plan-report out/demo/report.json
+	@test -f $(PLAN) || $(PY) scripts/demo.py
+	$(PY) scripts/explore_web.py --plan-report $(PLAN)
 
 test: install
 	$(PY) -m ruff check .

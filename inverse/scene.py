@@ -219,11 +219,13 @@ class Scene:
         return Objective(self.eq, self.domain.point_operator(names), pts, weights, tikhonov,
                          names)
 
-    def default_targets(self) -> dict:
-        """The case's built-in treatment goal ``{name: [x, y, z]}`` (see `inverse.targets`)."""
+    def default_targets(self, goal: str | None = None) -> dict:
+        """A built-in treatment goal ``{name: [x, y, z]}`` (`inverse.targets`): ``goal``, or
+        by default the case's."""
         from inverse.targets import default_targets
 
-        return default_targets(self.case, self.landmarks(rest=True), self.domain.head_frame)
+        return default_targets(goal or self.case, self.landmarks(rest=True),
+                               self.domain.head_frame)
 
     def plan(self, targets=None, landmarks=None, weights=None, tikhonov: float | None = None,
              p0=None, **options):

@@ -18,6 +18,13 @@ points ``{name: (3,)}``; `default_targets` maps a scene's points in and out.
   moved onto the mid-sagittal plane (x of N and Sn, the upper face that surgery does not move),
   and the tragion line T_L-T_R is levelled (both at their mean height).
 * `keep` - the named landmarks stay where they are (e.g. Sn: do not advance the nose base).
+* `midface_advance` - a retruded midface brought forward by a LeFort I: subnasale Sn
+  `MIDFACE_ADVANCE_MM` anterior at its height (mild maxillary hypoplasia is corrected by
+  3-6 mm of advance, and Sn follows the bone at 0.5-0.9, San Miguel Moragas et al. 2014).
+  The nasal tip is left free: the plan must not steer the maxilla by the nose, whose
+  elevation the model overestimates (BENCHMARKS.md, ct; so does Sn's, which is why
+  `make demo` plans the advance alone). For scenes with a midface and no
+  mandible, such as Debian's Cranium CT (`make demo`).
 
 `DEFAULT_GOALS` composes them per case: class2 uses 3 landmarks, class3-asym 7 (paper 3.2).
 """
@@ -94,25 +101,39 @@ def compose(rest: dict, *parts) -> dict:
     return out
 
 
+MIDFACE_ADVANCE_MM = 3.0
+
+
+def midface_advance(rest: dict) -> dict:
+    """Sn `MIDFACE_ADVANCE_MM` anterior (y only)."""
+    sn = np.array(rest["Sn"], dtype=float)
+    sn[1] += MIDFACE_ADVANCE_MM
+    return {"Sn": sn}
+
+
 DEFAULT_GOALS = {
     "class1": lambda r: true_vertical_line(r, ("Ls", "Li", "Pg")),
     "class2": lambda r: true_vertical_line(r, ("Li", "Pg", "Me")),
     "class3": lambda r: true_vertical_line(r, ("Ls", "Li", "Pg", "Me")),
     "class3-asym": lambda r: compose(r, keep(r, ("Sn", "T_L", "T_R")),
                                      true_vertical_line(r), symmetry(r)),
+    "midface-advance": midface_advance,
 }
+#: The landmarks each goal needs.
+GOAL_LANDMARKS = {"midface-advance": ("Sn",)}
 
 
 def default_targets(case: str, rest: dict, frame=None) -> dict:
-    """The built-in treatment goal of a case, ``{name: [x, y, z]}`` mm in the scene's frame,
-    from rest landmarks in it; the rules apply in the head frame ``frame``
-    (`meshes.frame.HeadFrame`; None: the scene's frame is the head's)."""
+    """A built-in treatment goal (a case's, or a named one of `DEFAULT_GOALS`),
+    ``{name: [x, y, z]}`` mm in the scene's frame, from rest landmarks in it; the rules
+    apply in the head frame ``frame`` (`meshes.frame.HeadFrame`; None: the scene's frame is
+    the head's)."""
     if case not in DEFAULT_GOALS:
-        raise InputError(f"no default goal for {case!r}; give targets explicitly "
-                         f"(cases with a default: {sorted(DEFAULT_GOALS)})")
-    missing = [n for n in ("N", "Sn", "Pg", "Prn") if n not in rest]
+        raise InputError(f"no built-in goal {case!r}; give targets, or one of "
+                         f"{sorted(DEFAULT_GOALS)}")
+    missing = [n for n in GOAL_LANDMARKS.get(case, ("N", "Sn", "Pg", "Prn")) if n not in rest]
     if missing:
-        raise InputError(f"the default goal needs landmarks {missing}")
+        raise InputError(f"the goal {case!r} needs landmarks {missing}")
     from meshes.frame import HeadFrame
 
     frame = frame or HeadFrame.identity()

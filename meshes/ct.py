@@ -21,7 +21,8 @@ z superior) holds the osteotomy planes and optionally ``frame`` (`meshes.frame`)
 (``{"min": [x, y, z], "max": [x, y, z], "free": ["-z"]}``; default: the whole field of view,
 every face held),
 ``skin_hu``, ``bone_hu``, ``labels`` (a label map's values, ``{"tissue": 1, "bone": 2}``) and
-``occlusion`` (4×4 or a .tfm, the final occlusion). The result is deterministic (CGAL's seed is
+``occlusion`` (4×4 or a .tfm, the final occlusion). A plane may come from a 3D Slicer markups
+file (`meshes.osteotomy.resolve_plane_files`). The result is deterministic (CGAL's seed is
 fixed) and cached under `meshes.synthetic.cache_dir` by the input's content, the options and
 the pipeline's source.
 """
@@ -55,7 +56,7 @@ from meshes.errors import MeshError
 from meshes.frame import estimate as estimate_frame
 from meshes.frame import from_spec
 from meshes.landmarks import skin_landmarks
-from meshes.osteotomy import Osteotomies, Plane
+from meshes.osteotomy import Osteotomies, Plane, resolve_plane_files
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import ct_teeth, tag_teeth
 from meshes.tissue import ct_fat, tissue_fractions, tissue_report
@@ -135,7 +136,7 @@ def read_scene_file(path) -> dict:
         raise MeshError(f"cannot read the osteotomy file {path}: {e}") from None
     if not isinstance(spec, dict):
         raise MeshError(f"{path}: expected a JSON object")
-    return spec
+    return resolve_plane_files(spec, Path(path).parent)
 
 
 def parse_scene_file(path):

@@ -58,6 +58,7 @@ import numpy as np
 
 from meshes.anatomy import Landmark, intersect_rays
 from meshes.errors import MeshError
+from meshes.markups import markup_points, read_markups
 from meshes.osteotomy import Plane
 
 PROFILE_STEP_MM = 0.5
@@ -77,8 +78,6 @@ EAR_FRONT_MM = 15.0
 EAR_BEHIND_MM = 75.0
 EAR_MIN_MM2 = 60.0
 CANAL_MM = 5.0
-#: RAS or LPS -> orthodiff (x left, y anterior, z superior).
-FROM_FRAME = {"RAS": np.diag([-1.0, 1.0, 1.0]), "LPS": np.diag([1.0, -1.0, 1.0])}
 
 
 def _plane_axes(plane: Plane):
@@ -312,21 +311,11 @@ def _menton(points, tris, o, a, u, s_pg, t_pg):
 
 def read_landmark_file(path) -> dict:
     """Points {name: (3,)} mm in the scene's frame from a JSON ``{name: [x, y, z]}`` or a
-    3D Slicer markups file (``.mrk.json``)."""
-    try:
-        spec = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise MeshError(f"cannot read the landmark file {path}: {e}") from None
-    if isinstance(spec, dict) and "markups" in spec:
-        out = {}
-        for m in spec["markups"]:
-            frame = FROM_FRAME.get(str(m.get("coordinateSystem", "LPS")).upper())
-            if frame is None:
-                raise MeshError(f"{path}: unknown coordinateSystem "
-                                f"{m.get('coordinateSystem')!r}; RAS or LPS")
-            for cp in m.get("controlPoints", []):
-                out[str(cp.get("label"))] = frame @ np.asarray(cp["position"], float)
-        return out
+    3D Slicer markups file (``.mrk.json``, `meshes.markups`)."""
+    markups = read_markups(path)
+    if markups is not None:
+        return markup_points(path, markups)
+    spec = json.loads(Path(path).read_text())
     if not isinstance(spec, dict):
         raise MeshError(f"{path}: expected {{name: [x, y, z]}} or a 3D Slicer markups file")
     return {k: np.asarray(v, float) for k, v in spec.items()}

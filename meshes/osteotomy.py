@@ -16,6 +16,8 @@ on which side a facet midpoint lies. The cuts (the JSON keys of an osteotomy fil
 * ``pterygomaxillary`` (normal anterior, optional): the posterior end of the LeFort I
   segment; by default the ramus planes bound the maxilla too.
 
+A plane may also come from a 3D Slicer markups file (`resolve_plane_files`).
+
 Bone within ``band_mm / 2`` of a cut (and, behind a ramus cut, ``split_mm`` back: the sagittal
 split's overlap) is left free: the elevated periosteum. A moving segment that borders fixed bone
 makes the Jacobian indefinite (DESIGN.md, measured); see `meshes.synthetic` for the split.
@@ -36,6 +38,10 @@ SEGMENTS = ("mandible", "maxilla_L", "maxilla_R")
 SEGMENT_TAGS = {name: SEGMENT_TAG0 + i for i, name in enumerate(SEGMENTS)}
 PLANES = ("lefort1", "midsagittal", "occlusal", "ramus_L", "ramus_R", "pterygomaxillary")
 BAND_MM, SPLIT_MM = 10.0, 15.0
+#: The axis each cut's normal points along (module docstring): a plane drawn in 3D Slicer
+#: has no side, so its normal is turned to this one.
+NORMAL_AXIS = {"lefort1": 2, "occlusal": 2, "midsagittal": 0, "ramus_L": 1, "ramus_R": 1,
+               "pterygomaxillary": 1}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +75,40 @@ def axis_plane(axis: int, value: float) -> Plane:
     p, n = np.zeros(3), np.zeros(3)
     p[axis], n[axis] = value, 1.0
     return Plane(tuple(p), tuple(n))
+
+
+def resolve_plane_files(spec: dict, folder) -> dict:
+    """A scene file's planes from 3D Slicer markups files (paths relative to ``folder``):
+    ``"planes": "cuts.mrk.json"`` (or a list of files) gives each of their Plane markups
+    named like a cut (`PLANES`); a cut given as a file name, ``"lefort1": "le.mrk.json"``,
+    is that file's plane of the cut's name, or its only plane. A cut given as a point and a
+    normal wins over a ``"planes"`` file. Returns the spec with points and normals."""
+    from meshes.markups import markup_planes
+
+    out = dict(spec)
+    files = out.pop("planes", None)
+    files = [files] if isinstance(files, str) else files
+    if files is not None and (not isinstance(files, list)
+                              or not all(isinstance(f, str) for f in files)):
+        raise MeshError(f"'planes' must name 3D Slicer markups files, got {spec['planes']!r}")
+    for f in files or []:
+        planes = markup_planes(Path(folder) / f)
+        named = {k: v for k, v in planes.items() if k in PLANES}
+        if not named:
+            raise MeshError(f"{f}: no plane is named as a cut {list(PLANES)}; its planes: "
+                            f"{sorted(planes)}")
+        for k, v in named.items():
+            out.setdefault(k, v)
+    for k in PLANES:
+        if isinstance(out.get(k), str):
+            planes = markup_planes(Path(folder) / out[k])
+            if k not in planes and len(planes) != 1:
+                raise MeshError(f"{out[k]}: no plane named {k!r} among {sorted(planes)}")
+            out[k] = planes[k] if k in planes else next(iter(planes.values()))
+        if out.get(k) is not spec.get(k):   # from markups: the normal as the cut's convention
+            n = np.asarray(out[k]["normal"], float)
+            out[k] = dict(out[k], normal=(n if n[NORMAL_AXIS[k]] >= 0 else -n).tolist())
+    return out
 
 
 @dataclasses.dataclass(frozen=True)

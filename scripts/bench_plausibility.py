@@ -93,7 +93,8 @@ def plausibility(args) -> None:
         "rank).", "",
         f"Generator version {GENERATOR_VERSION}: the LeFort I cut runs below the piriform rim "
         f"(z = {Z_LEFORT:g} mm), so the nose sits on bone that does not move; each jaw's "
-        "crowns and vestibule are its teeth. What the cut through the nasal base (version 2) "
+        "crowns and vestibule are its teeth; each cell has its skin, fat and lean tissue "
+        "(version 5). What the cut through the nasal base (version 2) "
         "gave, and what the change did to the forward solve and the plan: "
         "docs/decisions.md, with its command.", ""]
     body += table(head + cols, [

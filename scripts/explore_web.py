@@ -2,7 +2,8 @@
 """The interactive explorer in the browser (paper Fig. 5): first-order sliders, true solves.
 
     mpirun -n 2 python3 scripts/explore_web.py --case class3-asym --resolution paper \
-        [--params P.json | --plan-report out/demo/report.json] [--host 127.0.0.1] [--port 8765]
+        [--params P.json | --plan-report out/demo/cranium/report.json] \
+        [--host 127.0.0.1] [--port 8765]
 
 It solves the equilibrium at p0 (``--params``/``--p``, or a plan report's result, its case,
 resolution and occlusion), computes the skin sensitivities there, prints the URL and serves
@@ -102,6 +103,8 @@ def _apply_report(args, argv, report: dict) -> None:
     if not isinstance(report, dict) or not {"param_names", "params_optimal"} <= set(report):
         raise InputError(f"{args.plan_report} is not a plan.py report")
     given = {a.split("=")[0] for a in argv}
+    if "--mesh" not in given and "--case" not in given and report.get("mesh"):
+        args.mesh = report["mesh"]
     for key in ("case", "resolution"):
         if f"--{key}" not in given and report.get(key) and not args.mesh:
             setattr(args, key, report[key])

@@ -56,6 +56,10 @@ def main(argv=None):
     ap = scene_parser(__doc__, plan=True)
     ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm (default: the case's "
                     "clinical goal)")
+    ap.add_argument("--goal", help="a built-in clinical goal instead of --targets, built "
+                    "on the scene's own landmarks in the head frame (inverse/targets.py): "
+                    "class1, class2, class3, class3-asym, midface-advance (default: the "
+                    "case's)")
     ap.add_argument("--landmarks", help="comma-separated subset of the targets to use")
     ap.add_argument("--tikhonov", default=TIKHONOV,
                     help="α of ½α|p|², mm² per unit²: prefers small movements where the "
@@ -80,7 +84,7 @@ def main(argv=None):
 
     t0 = time.perf_counter()
     scene = scene_from_args(args, comm, plan=True)
-    targets = args.targets or scene.default_targets()
+    targets = args.targets or scene.default_targets(args.goal)
     names = names_list(args.landmarks) if args.landmarks is not None else None
     obj = scene.objective(targets, names, tikhonov=args.tikhonov)
     names = obj.names
@@ -118,6 +122,7 @@ def main(argv=None):
         result.params_initial = np.asarray(state["params_initial"], dtype=float)
         before = {n: np.asarray(v, dtype=float) for n, v in state["before"].items()}
     report = plan_report(scene, result, targets, before)
+    report.update(mesh=args.mesh, goal=None if args.targets else args.goal or scene.case)
     report["resumed_from_iteration"] = offset if args.resume else None
     report["timings_s"] = dict(report["timings_s"], mesh=scene.timings["mesh"],
                                compile=scene.timings["compile"])

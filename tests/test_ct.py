@@ -409,7 +409,35 @@ def _garbage(tmp_path):
     return tmp_path / "noise.mha"
 
 
+def _markups(folder, name, markups, ct=True):
+    """Write a 3D Slicer markups file ``folder/name``; the small CT (or None)."""
+    (folder / name).write_text(json.dumps({"@schema": "markups-schema-v1.0.3.json#",
+                                           "markups": markups}))
+    return _small_ct(folder) if ct else None
+
+
+def _plane_markup(name, point, normal, system="LPS"):
+    """A Slicer Plane markup from a point and a normal in the scene's frame."""
+    from meshes.markups import FROM_FRAME
+
+    to = FROM_FRAME[system]   # its own inverse
+    return {"type": "Plane", "name": name, "coordinateSystem": system,
+            "planeType": "pointNormal", "center": (to @ np.asarray(point, float)).tolist(),
+            "normal": (to @ np.asarray(normal, float)).tolist(),
+            "controlPoints": [{"label": f"{name}-1",
+                               "position": (to @ np.asarray(point, float)).tolist()}]}
+
+
 BAD = {
+    "a markups file with no plane": (lambda t: _markups(t, "cuts.mrk.json", [
+        {"type": "Fiducial", "controlPoints": [{"label": "A", "position": [0, 0, 0]}]}]),
+        {"planes": "cuts.mrk.json"}, [], "holds no Plane markup"),
+    "a plane with a zero normal": (lambda t: _markups(t, "le.mrk.json", [
+        _plane_markup("lefort1", [0, 0, -15], [0, 0, 0])]), {"lefort1": "le.mrk.json"}, [],
+        "zero normal"),
+    "a markups file of no cut": (lambda t: _markups(t, "cuts.mrk.json", [
+        _plane_markup("P", [0, 0, -15], [0, 0, 1])]), {"planes": "cuts.mrk.json"}, [],
+        "no plane is named as a cut"),
     "not an image": (lambda t: _garbage(t), {}, [], "cannot read"),
     "a 2-D image": (lambda t: _two_d(t), {}, [], "3-D volume is needed"),
     "no body": (lambda t: _small_ct(t, lambda a, v: a.fill(-1000)), {}, [], "no body found"),
@@ -442,3 +470,39 @@ def test_bad_ct_input_gets_one_line_and_writes_nothing(tmp_path, cache, case):
     assert r.returncode == 2 and errors == lines[-1:], r.stderr[-2000:]
     assert needle in errors[0], errors[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_planes_from_slicer_markups(tmp_path, cache):
+    """The scene file's planes from 3D Slicer markups: one file of named planes (LPS, centre
+    and normal) and a cut given as its own file (RAS, three control points) give the cuts of
+    the hand-typed file, and the same scene."""
+    from meshes.ct import ct_anatomy, parse_scene_file
+    from meshes.markups import FROM_FRAME
+    from meshes.synthetic import synthetic_scene_file
+
+    spec = synthetic_scene_file("class1")
+    given = {k: spec.pop(k) for k in ("lefort1", "occlusal", "ramus_L", "ramus_R")}
+    ras = FROM_FRAME["RAS"]
+    p, n = np.asarray(given["lefort1"]["point"]), np.asarray(given["lefort1"]["normal"])
+    u = np.cross(n, [1.0, 0, 0]) if abs(n[0]) < 0.9 else np.cross(n, [0, 1.0, 0])
+    three = [p, p + 10 * u, p + 10 * np.cross(n, u)]   # counter-clockwise about n
+    _markups(tmp_path, "lefort.mrk.json", [
+        {"type": "Plane", "name": "cut", "coordinateSystem": "RAS", "planeType": "3Points",
+         "controlPoints": [{"label": str(i), "position": (ras @ x).tolist()}
+                           for i, x in enumerate(three)]}], ct=False)
+    _markups(tmp_path, "cuts.mrk.json", [
+        _plane_markup(k, given[k]["point"], given[k]["normal"])
+        for k in ("occlusal", "ramus_L", "ramus_R")] + [
+        _plane_markup("lefort1", [0, 0, 99], [0, 0, 1])], ct=False)   # the lefort1 entry wins
+    typed = _scene_file(tmp_path, **spec, **given).rename(tmp_path / "typed.json")
+    scene = _scene_file(tmp_path, **spec, planes="cuts.mrk.json", lefort1="lefort.mrk.json")
+    _, cuts, _ = parse_scene_file(scene)
+    _, want, _ = parse_scene_file(typed)
+    for k in given:
+        a, b = getattr(cuts, k), getattr(want, k)
+        np.testing.assert_allclose(a.normal, b.normal, atol=1e-12)
+        assert abs(a.distance(np.array([b.point]))[0]) < 1e-9, k
+    ct = _small_ct(tmp_path)
+    from_markups, _ = ct_anatomy(ct, scene)
+    from_typed, _ = ct_anatomy(ct, typed)
+    np.testing.assert_array_equal(from_markups.facet_tags, from_typed.facet_tags)

@@ -461,3 +461,28 @@ def test_a_fresh_machine_sees_no_compiler_lines(tmp_path):
     loud = _run(SIM + ["--p", "mandible.advance_mm=1", "-v"],
                 env=dict(env, HOME=str(tmp_path / "again")))
     assert loud.returncode == 0 and "build_ext" in loud.stdout + loud.stderr
+
+
+def test_plan_to_a_named_goal(tmp_path):
+    """plan.py --goal: a built-in goal on the scene's own landmarks (midface-advance: Sn 3 mm
+    forward, as `make demo` plans the real face) is reported and reached by the LeFort I
+    advance alone (Sn follows the maxilla at ~0.5); an unknown goal is one line of error,
+    exit 2, nothing written."""
+    from inverse.targets import MIDFACE_ADVANCE_MM
+
+    rep = tmp_path / "r.json"
+    r = _run(PLAN[:2] + ["--case", "class1", "--resolution", "tiny", "--goal",
+                         "midface-advance", "--params-used", "maxilla.advance_mm",
+                         "--report", str(rep)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(rep.read_text())
+    assert out["goal"] == "midface-advance" and list(out["landmarks"]) == ["Sn"]
+    advance = out["params_optimal"][0]
+    assert MIDFACE_ADVANCE_MM < advance < 3 * MIDFACE_ADVANCE_MM, advance
+    assert out["landmarks"]["Sn"]["distance_after_mm"] < 0.5 * MIDFACE_ADVANCE_MM
+    rep.unlink()
+    r = _run(PLAN[:2] + ["--case", "class1", "--resolution", "tiny", "--goal", "smile",
+                         "--report", str(rep)])
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]
+    assert r.returncode == 2 and len(errors) == 1 and "smile" in errors[0], r.stderr[-2000:]
+    assert not rep.exists()
