@@ -293,11 +293,14 @@ def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
 
     out = tmp_path / "out"
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.Popen(PLAN + ["--out", str(out), "--report", str(out / "r.json")],
+    # coarse, not tiny: tiny's plan ended 0.3 s after its first iteration, before the
+    # signal sent on reading that iteration's line had arrived (a race seen once in CI)
+    proc = subprocess.Popen(PLAN[:-1] + ["coarse", "--out", str(out), "--report",
+                                         str(out / "r.json")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             encoding="utf-8", errors="replace", env=env)
     seen = []
-    deadline = time.time() + 60
+    deadline = time.time() + 120
     while time.time() < deadline and "GN  1" not in "".join(seen):
         if select.select([proc.stderr], [], [], 0.2)[0]:
             seen.append(proc.stderr.readline())   # the plan logs its iterations here
