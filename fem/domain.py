@@ -110,7 +110,7 @@ class Domain:
         """Landmark operator for the named landmarks (in that order)."""
         return PointOperator.build(self, [self.landmarks[n] for n in names])
 
-    def skin_vertices(self, tags=None) -> np.ndarray:
+    def boundary_vertices(self, tags=None) -> np.ndarray:
         """Sorted original indices (K,) of all vertices on facets with ``tags`` (default: the
         skin), the same on every rank. Collective."""
         from meshes.anatomy import SKIN
@@ -119,9 +119,9 @@ class Domain:
         mine = mine[mine >= 0]   # vertices, not edge midpoints
         return np.unique(np.concatenate(self.comm.allgather(mine)))
 
-    def skin_triangles(self, vertices: np.ndarray, tags=None) -> np.ndarray:
+    def boundary_triangles(self, vertices: np.ndarray, tags=None) -> np.ndarray:
         """Triangles (F, 3) of the facets with ``tags`` (default: the skin) as positions in
-        ``vertices`` (from `skin_vertices` of the same tags). Collective."""
+        ``vertices`` (from `boundary_vertices` of the same tags). Collective."""
         from meshes.anatomy import SKIN
 
         facets = self.facet_tags.indices[np.isin(self.facet_tags.values,

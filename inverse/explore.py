@@ -47,7 +47,7 @@ class SkinPredictor:
     def __init__(self, scene):
         self.scene, self.eq = scene, scene.eq
         dom = scene.domain
-        self.vertices = dom.skin_vertices()
+        self.vertices = dom.boundary_vertices()
         self.op = dom.vertex_operator(self.vertices)
         self.p0 = self.eq.p.copy()
         self.x0 = self.op.apply(self.eq.u_eq.array)

@@ -121,7 +121,7 @@ class Session:
         return {"param_names": tr.names, "units": [q.unit for q in tr.params],
                 "bounds": tr.bounds.tolist(), "p0": pred.p0.tolist(),
                 "occlusion": self.occlusion,
-                "triangles": scene.domain.skin_triangles(pred.vertices).tolist(),
+                "triangles": scene.domain.boundary_triangles(pred.vertices).tolist(),
                 "vertices": pred.x0.tolist(), "vertices_rest": pred.x_rest.tolist(),
                 "landmarks": {n: x.tolist() for n, x in zip(pred.landmark_names, pred.lm0)},
                 "landmark_sensitivity": pred.lm_S.tolist(),
@@ -141,14 +141,14 @@ class Session:
         scene, dom = self.scene, self.scene.domain
         segments = list(dom.segments)
         tags = [FIXED, FREE_BONE, *(t for s in segments for t in segment_tags(dom.segments[s]))]
-        verts = dom.skin_vertices(tags)
+        verts = dom.boundary_vertices(tags)
         x = dom.vertex_operator(verts).apply(np.zeros(dom.X.size))
         which = np.full(len(verts), -1)
         for k, name in enumerate(segments):
-            which[np.isin(verts, dom.skin_vertices(segment_tags(dom.segments[name])))] = k
+            which[np.isin(verts, dom.boundary_vertices(segment_tags(dom.segments[name])))] = k
         T, dT = scene.treatment.transforms(self.pred.p0, dom.pivots, derivatives=True)
         return {"vertices": x.tolist(),
-                "triangles": dom.skin_triangles(verts, tags)[:, ::-1].tolist(),
+                "triangles": dom.boundary_triangles(verts, tags)[:, ::-1].tolist(),
                 "segment": which.tolist(), "segments": segments,
                 "transforms": [T[s].tolist() for s in segments],
                 "transform_derivatives": [dT[s].tolist() for s in segments]}

@@ -125,7 +125,7 @@ def _write(scene, pred, out: Path, comm):
     write_npz(out / "skin_sensitivity.npz", {
         "vertices": pred.vertices,
         "points_rest": pred.x_rest,
-        "points": pred.x0, "triangles": dom.skin_triangles(pred.vertices), "S": pred.S,
+        "points": pred.x0, "triangles": dom.boundary_triangles(pred.vertices), "S": pred.S,
         "param_names": np.array(scene.param_names), "p0": pred.p0}, comm)
     fields = []
     for name, s in zip(scene.param_names, scene.eq.sensitivity()):

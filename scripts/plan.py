@@ -148,10 +148,10 @@ def _picture(scene, targets: dict, path, comm) -> None:
     from scripts._render import render_before_after
 
     dom = scene.domain
-    verts = dom.skin_vertices()
+    verts = dom.boundary_vertices()
     op = dom.vertex_operator(verts)
     rest, after = op.apply(np.zeros_like(scene.eq.u_eq.array)), op.apply(scene.eq.u_eq.array)
-    tris = dom.skin_triangles(verts)
+    tris = dom.boundary_triangles(verts)
     landmarks = scene.landmarks(list(targets))
     title = f"{scene.case or dom.name}: the face before and after the plan"
     write_on_root(path, lambda p: render_before_after(rest, after, tris, landmarks, targets,
