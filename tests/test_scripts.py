@@ -293,12 +293,13 @@ def test_interrupted_plan_leaves_no_partial_output(tmp_path, sig):
 
     out = tmp_path / "out"
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
-    # coarse, not tiny: tiny's plan ended 0.3 s after its first iteration, before the
-    # signal sent on reading that iteration's line had arrived (a race seen once in CI)
+    # SIGINT as a terminal delivers it: a suite started in the background of a shell
+    # without job control inherits SIGINT ignored, and so would the plan
     proc = subprocess.Popen(PLAN[:-1] + ["coarse", "--out", str(out), "--report",
                                          str(out / "r.json")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            encoding="utf-8", errors="replace", env=env)
+                            encoding="utf-8", errors="replace", env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     deadline = time.time() + 120
     while time.time() < deadline and "GN  1" not in "".join(seen):
