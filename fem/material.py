@@ -40,17 +40,11 @@ class NeoHookean:
         """First Lame parameter, kPa."""
         return self.E * self.nu / ((1 + self.nu) * (1 - 2 * self.nu))
 
-    def energy_density(self, F, mu=None, lmbda=None):
-        """Strain energy density (UFL scalar, kPa) of the deformation gradient F. ``mu`` and
-        ``lmbda`` may be UFL constants holding `mu` and `lmbda` (one compiled form serves
-        every material); by default the numbers are used."""
-        return neo_hookean(F, self.mu if mu is None else mu,
-                           self.lmbda if lmbda is None else lmbda)
-
 
 def neo_hookean(F, mu, lmbda):
-    """``psi`` (`NeoHookean`), kPa, of the deformation gradient F with Lame parameters mu and
-    lmbda (numbers, constants or cell fields, kPa)."""
+    """``psi`` (`NeoHookean`), kPa (UFL scalar), of the deformation gradient F with Lame
+    parameters mu and lmbda (numbers, constants or cell fields, kPa): constants and fields
+    let one compiled form serve every material."""
     J = ufl.det(F)
     lnJ = ufl.ln(J)
     return 0.5 * mu * (ufl.tr(F.T * F) - 3) - mu * lnJ + 0.5 * lmbda * lnJ**2
@@ -118,9 +112,7 @@ class Tissues:
                                  "\"nu\": ...}")
             try:
                 out[name] = NeoHookean(**{k: float(v) for k, v in given.items()})
-            except (TypeError, ValueError) as e:
-                raise InputError(f"material file {path}: {name}: {e}") from e
-            except InputError as e:
+            except (TypeError, ValueError, InputError) as e:
                 raise InputError(f"material file {path}: {name}: {e}") from e
         return dataclasses.replace(cls(), **out)
 

@@ -92,9 +92,7 @@ class Scene:
                              "to slide on: use contact 'glued'")
         self.contact = contact or (self.domain.contact if teeth else "glued")
         sliding = teeth if self.contact == "sliding" else []
-        if material is None:
-            material = self.domain.material if self.domain.tissues is not None \
-                else "homogeneous"
+        material = self.domain.material if material is None else material
         #: "homogeneous", "tissues", a material file, or the repr of the material given
         self.material = material if isinstance(material, str) else repr(material)
         material = material_from_spec(material)

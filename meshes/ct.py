@@ -329,7 +329,7 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     t = time.perf_counter()
-    fat = _fat_rule(volume, spec.get("labels") if is_map else None, is_map)
+    fat = _fat_rule(volume, spec.get("labels"), is_map)
     if fat is not None:
         anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin, fat)
         anatomy.material = "tissues"

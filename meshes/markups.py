@@ -63,17 +63,18 @@ def markup_planes(path) -> dict:
         if not isinstance(m, dict) or m.get("type") != "Plane":
             continue
         name, frame = str(m.get("name", "")), _frame(path, m)
-        try:
+        try:   # in the scene's frame
             if m.get("center") is not None and m.get("normal") is not None:
-                point, normal = (np.asarray(m[k], float) for k in ("center", "normal"))
+                point, normal = (frame @ np.asarray(m[k], float) for k in ("center", "normal"))
             else:
-                pts = np.array([cp["position"] for cp in m.get("controlPoints", [])], float)
-                if pts.shape[0] < 3:
+                q = np.array([cp["position"] for cp in m.get("controlPoints", [])], float)
+                if q.shape[0] < 3:
                     raise MeshError(f"{path}: plane {name!r} has neither a center and a "
                                     "normal nor three control points")
-                ras = np.diag(FROM_FRAME["RAS"]) * (frame @ pts.T).T   # Slicer's world
-                point = pts[0]
-                normal = frame @ (FROM_FRAME["RAS"] @ np.cross(ras[1] - ras[0], ras[2] - ras[0]))
+                q = q @ frame.T
+                # Slicer's normal is the cross product in RAS, a reflection of the scene's
+                # frame: there it is the opposite of the scene's own cross product
+                point, normal = q[0], -np.cross(q[1] - q[0], q[2] - q[0])
         except (KeyError, TypeError, ValueError):
             raise MeshError(f"{path}: plane {name!r}: center, normal and control points "
                             "must be 3 numbers each") from None
@@ -84,7 +85,7 @@ def markup_planes(path) -> dict:
         if np.linalg.norm(normal) < 1e-9 * max(1.0, np.abs(point).max()):
             raise MeshError(f"{path}: plane {name!r} has a zero normal (its points are "
                             "collinear)")
-        out[name] = {"point": (frame @ point).tolist(), "normal": (frame @ normal).tolist()}
+        out[name] = {"point": point.tolist(), "normal": normal.tolist()}
     if not out:
         raise MeshError(f"{path} holds no Plane markup")
     return out

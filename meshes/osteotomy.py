@@ -86,6 +86,7 @@ def resolve_plane_files(spec: dict, folder) -> dict:
     from meshes.markups import markup_planes
 
     out = dict(spec)
+    drawn = set()   # the cuts taken from markups
     files = out.pop("planes", None)
     files = [files] if isinstance(files, str) else files
     if files is not None and (not isinstance(files, list)
@@ -98,16 +99,19 @@ def resolve_plane_files(spec: dict, folder) -> dict:
             raise MeshError(f"{f}: no plane is named as a cut {list(PLANES)}; its planes: "
                             f"{sorted(planes)}")
         for k, v in named.items():
-            out.setdefault(k, v)
+            if k not in out:
+                out[k] = v
+                drawn.add(k)
     for k in PLANES:
         if isinstance(out.get(k), str):
             planes = markup_planes(Path(folder) / out[k])
             if k not in planes and len(planes) != 1:
                 raise MeshError(f"{out[k]}: no plane named {k!r} among {sorted(planes)}")
             out[k] = planes[k] if k in planes else next(iter(planes.values()))
-        if out.get(k) is not spec.get(k):   # from markups: the normal as the cut's convention
-            n = np.asarray(out[k]["normal"], float)
-            out[k] = dict(out[k], normal=(n if n[NORMAL_AXIS[k]] >= 0 else -n).tolist())
+            drawn.add(k)
+    for k in drawn:   # a plane drawn in Slicer has no side: the cut's convention
+        n = np.asarray(out[k]["normal"], float)
+        out[k] = dict(out[k], normal=(n if n[NORMAL_AXIS[k]] >= 0 else -n).tolist())
     return out
 
 

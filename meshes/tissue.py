@@ -43,7 +43,7 @@ SAMPLES = np.array([(a, b, c, 6 - a - b - c) for a in range(1, 4) for b in range
                     for c in range(1, 4) if a + b + c <= 5], dtype=float) / 6.0
 #: Candidate skin triangles (nearest centroids) searched per sample point.
 _CANDIDATES = 8
-#: Sample points per batch of exact distances (bounds the memory: ~50 MB per array).
+#: Query points per batch of exact distances (bounds the memory: ~50 MB per array).
 _CHUNK = 100_000
 
 
@@ -109,7 +109,7 @@ def tissue_fractions(points: np.ndarray, cells: np.ndarray, skin: np.ndarray,
         raise MeshError("the mesh has no skin facets to measure the skin layer from")
     x = cell_samples(points, cells).reshape(-1, 3)
     depth = surface_depth(points, points, skin, SKIN_MM)   # at the vertices: `SAMPLES`
-    in_skin = (SAMPLES @ depth[cells].T).T.reshape(-1) < SKIN_MM
+    in_skin = (depth[cells] @ SAMPLES.T).reshape(-1) < SKIN_MM
     fat = np.zeros(len(x), dtype=bool)
     fat[~in_skin] = np.asarray(is_fat(x[~in_skin]), dtype=bool)
     classes = np.stack([in_skin, fat, ~in_skin & ~fat], axis=1).reshape(len(cells), -1, 3)

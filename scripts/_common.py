@@ -5,6 +5,12 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from pathlib import Path
+
+#: The two real example CTs (docs/anatomy.md): Debian's invesalius-examples (an upper face)
+#: and the shared headsq (both jaws), read-only where they are.
+CRANIUM_CT = Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3")
+HEADSQ_CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "headsq" / "headsq.mhd"
 
 
 def parse(ap, argv=None):

@@ -16,6 +16,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from scripts._common import CRANIUM_CT, HEADSQ_CT
+
 ROOT = Path(__file__).resolve().parents[1]
 #: name -> (CT, scene file, the 5 mm advance, the goal: landmark -> displacement mm in the
 #: head frame (`meshes.frame`), the plan's parameters). Goals: headsq's chin and lower lip
@@ -24,11 +26,11 @@ ROOT = Path(__file__).resolve().parents[1]
 #: the nose follows 0.13-0.33 of it). Sn 3 mm forward and 1 mm down asked for 5.9 mm of
 #: impaction and compressed the tissue to 48 % (plan.py, paper).
 CTS = {
-    "headsq": (ROOT.parent / "shared" / "data" / "headsq" / "headsq.mhd",
+    "headsq": (HEADSQ_CT,
                ROOT / "meshes" / "examples" / "headsq.json", "jaws.advance_mm",
                {"Pg": [0, 4, 0], "Li": [0, 4, 0], "Me": [0, 3, 0]},
                "jaws.advance_mm,jaws.vertical_mm,jaws.pitch_deg"),
-    "cranium": (Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3"),
+    "cranium": (CRANIUM_CT,
                 ROOT / "meshes" / "examples" / "cranium.json", "maxilla.advance_mm",
                 {"Sn": [0, 3, 0], "Prn": [0, 0.6, 0]},
                 "maxilla.advance_mm,maxilla.vertical_mm"),

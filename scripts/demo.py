@@ -28,9 +28,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from scripts import ct_scene, plan  # noqa: E402
+from scripts._common import CRANIUM_CT as CRANIUM  # noqa: E402
 from scripts._common import run_main  # noqa: E402
 
-CRANIUM = Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3")
 OUT = Path("out/demo")
 
 

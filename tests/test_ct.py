@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from test_scripts import ROOT, _mpirun, _run
 
+from scripts._common import CRANIUM_CT, HEADSQ_CT
+
 CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
 SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]
 PLAN = [sys.executable, str(ROOT / "scripts" / "plan.py")]
-HEADSQ = ROOT.parent / "shared" / "data" / "headsq" / "headsq.mhd"
-CRANIUM = Path("/usr/share/doc/invesalius-examples/examples/Cranium.inv3")
+HEADSQ, CRANIUM = HEADSQ_CT, CRANIUM_CT
 EXAMPLES = ROOT / "meshes" / "examples"
 REPORT_KEYS = {"mesh", "n_vertices", "n_cells", "segments", "landmarks", "min_quality",
                "timings_s"}
