@@ -5,6 +5,8 @@
         --osteotomies meshes/examples/headsq.json --resolution paper \
         --out out/headsq --report out/headsq/ct.json
     python3 scripts/plan.py --mesh out/headsq/scene.vtu --occlusion free --targets T.json
+    python3 scripts/ct_scene.py --ct CT --propose-osteotomies proposed.json
+
 
 ``--ct``: a DICOM folder, NIfTI, NRRD, MetaImage (.mha/.mhd) or an InVesalius .inv3 project
 (HU), or a label map with ``--labelmap`` (3D Slicer segmentation: 1 tissue, 2 bone). The
@@ -13,6 +15,11 @@ osteotomy file holds the cut planes, the crop and optionally the head frame (`me
 head frame's mid-sagittal profile (`meshes.landmarks`) unless ``--landmarks``
 (JSON ``{name: [x, y, z]}`` or a 3D Slicer ``.mrk.json``) gives them. The result is cached;
 the outputs are written whole or not at all. Under mpirun, rank 0 builds and writes.
+
+``--propose-osteotomies O.json`` writes a starting osteotomy file instead, from the CT's
+anatomy (`meshes.propose`: the planes, the crop, each by a documented rule), to adjust in 3D
+Slicer or by hand; an ``--osteotomies`` file given with it lends its settings (thresholds,
+frame, band widths), its planes replaced.
 """
 
 from __future__ import annotations
@@ -32,18 +39,56 @@ def parser():
 
     ap = base_parser(__doc__)
     ap.add_argument("--ct", required=True, help="CT volume (file or DICOM folder)")
-    ap.add_argument("--osteotomies", required=True, help="JSON of cut planes and crop (mm)")
+    ap.add_argument("--osteotomies", help="JSON of cut planes and crop (mm)")
+    ap.add_argument("--propose-osteotomies", metavar="O.json",
+                    help="write a starting osteotomy file from the CT's anatomy, and stop")
     ap.add_argument("--landmarks", help="JSON {name: [x, y, z]} or 3D Slicer .mrk.json")
     ap.add_argument("--labelmap", action="store_true", help="--ct is a label map")
     ap.add_argument("--resolution", default="coarse", choices=list(RESOLUTIONS))
-    ap.add_argument("--out", required=True, help=f"output folder ({MESH_NAME} + its sidecar)")
+    ap.add_argument("--out", help=f"output folder ({MESH_NAME} + its sidecar)")
     ap.add_argument("--report", help="JSON report path")
     ap.add_argument("--picture", help="PNG of the scene: skin, segments, landmarks")
     return ap
 
 
+def propose(args, comm) -> int:
+    """``--propose-osteotomies``: the proposed file, written whole on rank 0."""
+    from fem.io import write_json
+    from meshes.ct import read_scene_file
+    from meshes.errors import MeshError
+    from meshes.propose import propose as proposal
+    from meshes.volume import read_volume
+
+    if args.labelmap:
+        raise MeshError("--propose-osteotomies reads HU: give the CT, not a label map")
+    spec = None
+    if comm.rank == 0:
+        try:
+            base = None if args.osteotomies is None else read_scene_file(args.osteotomies)
+            spec = proposal(read_volume(args.ct), base, args.osteotomies or "")
+        except MeshError as e:
+            spec = str(e)
+    spec = comm.bcast(spec, root=0)
+    if isinstance(spec, str):
+        raise MeshError(spec)
+    write_json(args.propose_osteotomies, spec, comm)
+    if comm.rank == 0:
+        cuts = [k for k in spec if isinstance(spec[k], dict) and "normal" in spec[k]]
+        print(f"{args.propose_osteotomies}: proposed {', '.join(cuts)} and the crop "
+              f"{spec['crop']}; adjust them, then: ct_scene.py --osteotomies "
+              f"{args.propose_osteotomies}")
+    return 0
+
+
 def main(argv=None):
     args, comm = parse(parser(), argv)
+    if args.propose_osteotomies:
+        return propose(args, comm)
+    if args.osteotomies is None or args.out is None:
+        from meshes.errors import MeshError
+
+        raise MeshError("give --osteotomies and --out to build a scene, or "
+                        "--propose-osteotomies O.json to propose the osteotomies")
     import time
 
     import numpy as np
