@@ -58,6 +58,8 @@ def surface_depth(query: np.ndarray, points: np.ndarray, tris: np.ndarray,
     ``points``; exact below ``within``, and some value at least ``within`` beyond it."""
     from scipy.spatial import cKDTree
 
+    from meshes.surface import closest_on_triangles
+
     verts = np.unique(tris)
     edge = max(np.linalg.norm(points[tris] - points[np.roll(tris, 1, axis=1)], axis=2).max(),
                1e-9)
@@ -70,30 +72,10 @@ def surface_depth(query: np.ndarray, points: np.ndarray, tris: np.ndarray,
         _, cand = tree.query(query[part], k=k)
         cand = cand.reshape(len(part), k)
         a, b, c = (points[tris[cand, i]] for i in range(3))
-        d = _point_triangle(query[part, None, :], a, b, c).min(axis=1)
+        q = query[part, None, :]
+        d = np.linalg.norm(closest_on_triangles(q, a, b, c) - q, axis=2).min(axis=1)
         out[part] = np.minimum(d, near[part])
     return out
-
-
-def _point_triangle(p, a, b, c):
-    """Distance (...) from points p to triangles (a, b, c), all (..., 3): to the plane where
-    p projects inside the triangle, else to the nearest edge."""
-    n = np.cross(b - a, c - a)
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
-    h = np.einsum("...i,...i->...", p - a, n)
-    q = p - h[..., None] * n
-    inside = np.ones(h.shape, dtype=bool)
-    for u, v in ((a, b), (b, c), (c, a)):
-        inside &= np.einsum("...i,...i->...", np.cross(v - u, q - u), n) >= 0
-    edges = np.min([_point_segment(p, u, v) for u, v in ((a, b), (b, c), (c, a))], axis=0)
-    return np.where(inside, np.abs(h), edges)
-
-
-def _point_segment(p, u, v):
-    d = v - u
-    t = np.einsum("...i,...i->...", p - u, d) / np.maximum(np.einsum("...i,...i->...", d, d),
-                                                          1e-300)
-    return np.linalg.norm(p - (u + np.clip(t, 0.0, 1.0)[..., None] * d), axis=-1)
 
 
 def tissue_fractions(points: np.ndarray, cells: np.ndarray, skin: np.ndarray,

@@ -68,7 +68,8 @@ SECTIONS = {"forward": "forward", "stress": "stress", "plan": "plan", "peers": "
             "accuracy-mesh": "accuracy", "accuracy-order": "accuracy",
             "accuracy-tolerance": "accuracy", "accuracy-tolerance-qn": "accuracy",
             "accuracy-prediction": "accuracy", "accuracy-gradient": "accuracy",
-            "plausibility": "plausibility", "ct": "ct", "explorer": "explorer"}
+            "plausibility": "plausibility", "ct": "ct", "validation": "validation",
+            "explorer": "explorer"}
 
 INTRO = """# Benchmarks
 

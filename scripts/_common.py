@@ -188,6 +188,30 @@ def scene_from_args(args, comm, plan: bool = False, groups: bool = True):
     return Scene.from_case(args.case, args.resolution, **kw)
 
 
+def add_transforms_arg(ap) -> None:
+    """``--transforms``: the bone motions as VSP transforms, instead of ``--params``/``--p``."""
+    ap.add_argument("--transforms", help="JSON {segment: 4x4 | file.tfm} or one <segment>.tfm: "
+                    "the bone motions (instead of --params/--p)")
+
+
+def check_movements(args) -> None:
+    """`InputError` when both transforms and parameters are given (before the scene)."""
+    if args.transforms and (args.params or args.p):
+        from meshes.errors import InputError
+
+        raise InputError("give either --transforms or --params/--p, not both")
+
+
+def movements(args, scene):
+    """The treatment's parameters (P,) of ``--transforms`` or ``--params``/``--p``; the scene
+    is built with ``groups=not args.transforms`` (`scene_from_args`)."""
+    if args.transforms:
+        from meshes.transforms import read_transforms
+
+        return scene.params_from_transforms(read_transforms(args.transforms))
+    return scene.param_vector(load_params(args.params, args.p, scene))
+
+
 def warn_bounds(scene, p, comm) -> list[str]:
     """Warn (rank 0) of each parameter of p outside its feasible bounds; the messages."""
     import logging

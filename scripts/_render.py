@@ -160,3 +160,33 @@ def render_before_after(rest, after, tris, landmarks: dict, targets: dict, path,
     fig.subplots_adjust(0.06, 0.08, 0.98, 0.9, 0.05, 0)
     fig.savefig(path, dpi=80, format="png")
     plt.close(fig)
+
+
+def render_distance(points, tris, d, covered, path, title: str, frame=None) -> None:
+    """A PNG at ``path``: the skin ``points`` (N, 3) mm with triangles ``tris`` from the front
+    and in profile, coloured by the signed distance ``d`` (N,) mm (blue: the prediction lies
+    inside the real face, red: outside it), grey where not ``covered`` (N,); a legend in mm.
+    Drawn in the head frame ``frame`` (`meshes.frame.HeadFrame`; None: the scene's)."""
+    import matplotlib
+
+    if frame is not None:
+        points = frame.to_head(points)
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    limit = max(1.0, float(np.percentile(np.abs(d[covered]), 98)))
+    cmap = plt.get_cmap("RdBu_r")
+    face_d = d[tris].mean(axis=1)
+    colour = cmap(0.5 + 0.5 * np.clip(face_d / limit, -1, 1))[:, :3]
+    colour[~covered[tris].all(axis=1)] = 0.75
+    fig = plt.figure(figsize=(12, 6))
+    for k, (view, name) in enumerate((((5, 90), "front"), ((5, 0), "profile, from the left"))):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        _draw(ax, points, tris, _shaded(points, tris, colour, light=(0.2, 1.0, 0.3)), view)
+        ax.set_title(name, fontsize=10)
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(-limit, limit))
+    fig.colorbar(sm, ax=fig.axes, shrink=0.6, label="predicted to real skin, mm "
+                 "(> 0: the prediction stands out; grey: not in the scan)")
+    fig.suptitle(title)
+    fig.savefig(path, dpi=80, format="png")
+    plt.close(fig)

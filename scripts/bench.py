@@ -8,13 +8,14 @@
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
     python3 scripts/bench.py plausibility [--resolutions coarse,paper] [--cases class1]
     python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper]
+    python3 scripts/bench.py validation [--resolution paper] [--ranks 1,2]
     python3 scripts/bench.py explorer [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py peers [--resolutions tiny,coarse,medium,paper] [--ranks 1,2]
     python3 scripts/bench.py all       # every one above with its defaults: BENCHMARKS.md whole
 
 One module a benchmark: ``bench_forward`` (forward, stress), ``bench_plan``,
-``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_explorer``,
-``bench_peers``; the shared
+``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_validation``,
+``bench_explorer``, ``bench_peers``; the shared
 helpers in ``_bench``. This file checks the options and dispatches.
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
@@ -88,7 +89,8 @@ def check_args(args) -> None:
     lists = {"resolutions": RESOLUTIONS, "resolutions_tol": RESOLUTIONS,
              "resolutions_pred": RESOLUTIONS, "resolutions_p1": RESOLUTIONS,
              "resolutions_p2": RESOLUTIONS, "iterative_up_to": RESOLUTIONS,
-             "resolution_grad": RESOLUTIONS, "solvers": PRESETS, "methods": METHODS,
+             "resolution_grad": RESOLUTIONS, "resolution": RESOLUTIONS, "solvers": PRESETS,
+             "methods": METHODS,
              "methods_tol": METHODS, "occlusions": ("free", "final"), "cts": CTS,
              "parts": ("mesh", "tolerance", "prediction", "gradient", "order")}
     for name, allowed in lists.items():
@@ -169,6 +171,10 @@ def main():
     c = sub.add_parser("ct", help="the CT pipeline on the example CTs, to a plan")
     c.add_argument("--cts", default="headsq,cranium")
     c.add_argument("--resolutions", default="coarse,paper")
+    v = sub.add_parser("validation", help="the validation protocol on Cranium, a synthetic "
+                       "post-op scan")
+    v.add_argument("--resolution", default="paper")
+    v.add_argument("--ranks", default="1,2")
     e = sub.add_parser("explorer", help="the browser explorer in headless Chromium")
     e.add_argument("--resolutions", default="coarse,paper")
     e.add_argument("--ranks", default="1,2")
@@ -199,11 +205,13 @@ def main():
         bench_peers,
         bench_plan,
         bench_plausibility,
+        bench_validation,
     )
 
     run = {"forward": bench_forward.forward, "plan": bench_plan.plan,
            "stress": bench_forward.stress, "accuracy": bench_accuracy.accuracy,
            "plausibility": bench_plausibility.plausibility, "ct": bench_ct.ct,
+           "validation": bench_validation.validation,
            "explorer": bench_explorer.explorer, "peers": bench_peers.peers}
     for args in todo:
         print(f"== bench.py {' '.join(args.argv)}", flush=True)

@@ -20,7 +20,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
-    load_params,
+    add_transforms_arg,
+    check_movements,
+    movements,
     parse,
     peak_rss_mb,
     run_main,
@@ -35,8 +37,7 @@ def main(argv=None):
     ap = scene_parser(__doc__, params="treatment parameters")
     ap.add_argument("--out", help="output folder for XDMF files")
     ap.add_argument("--report", help="JSON report path")
-    ap.add_argument("--transforms", help="JSON {segment: 4x4 | file.tfm} or one <segment>.tfm: "
-                    "the bone motions (instead of --params/--p)")
+    add_transforms_arg(ap)
     ap.add_argument("--list-params", action="store_true",
                     help="list parameter names, units and bounds, then exit")
     args, comm = parse(ap, argv)
@@ -45,10 +46,7 @@ def main(argv=None):
     from fem.io import write_json
 
     t0 = time.perf_counter()
-    if args.transforms and (args.params or args.p):
-        from meshes.errors import InputError
-
-        raise InputError("give either --transforms or --params/--p, not both")
+    check_movements(args)
     scene = scene_from_args(args, comm, groups=not args.transforms)
     if args.list_params:
         if comm.rank == 0:
@@ -56,12 +54,7 @@ def main(argv=None):
             for p in scene.treatment.params:
                 print(f"{p.name:28s} {p.unit:5s} {p.kind:9s} [{p.bounds[0]:g}, {p.bounds[1]:g}]")
         return 0
-    if args.transforms:
-        from meshes.transforms import read_transforms
-
-        p = scene.params_from_transforms(read_transforms(args.transforms))
-    else:
-        p = scene.param_vector(load_params(args.params, args.p, scene))
+    p = movements(args, scene)
     warnings = warn_bounds(scene, p, comm)
     stats = scene.solve(p)
     rest = scene.landmarks(rest=True)

@@ -394,3 +394,53 @@ def test_tilted_cranium_landmarks_through_ct_scene(tmp_path):
     assert tilted["head_frame_sources"] == {"midsagittal": "estimated",
                                             "horizontal": "estimated"}
 
+
+
+def _synthetic_ct_scene(folder, angles):
+    """ct_scene.py on the synthetic head with ears and orbits made a CT (2 mm voxels) tilted
+    by ``angles`` (None: untilted), its planes tilted with it and the crop the tilted box's
+    bounds, the frame estimated: (report, M)."""
+    from meshes.synthetic import synthetic_scene_file
+    from meshes.volume import write_volume
+
+    M = np.eye(4) if angles is None else _motion(_rotation(*angles), CENTRE)
+    spec = synthetic_scene_file("class1")
+    for k in ("midsagittal", "lefort1", "occlusal", "ramus_L", "ramus_R"):
+        spec[k] = {"point": (M[:3, :3] @ spec[k]["point"] + M[:3, 3]).tolist(),
+                   "normal": (M[:3, :3] @ spec[k]["normal"]).tolist()}
+    lo, hi = np.array(spec["crop"]["min"]), np.array(spec["crop"]["max"])
+    box = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                    for c in (lo[2], hi[2])]) @ M[:3, :3].T + M[:3, 3]
+    spec["crop"] = {"min": box.min(axis=0).tolist(), "max": box.max(axis=0).tolist()}
+    write_volume(_head_ct(M, ears_and_orbits=True), folder / "ct.mha")
+    (folder / "scene.json").write_text(json.dumps(spec))
+    r = _run(CT_SCENE + ["--ct", str(folder / "ct.mha"), "--osteotomies",
+                         str(folder / "scene.json"), "--out", str(folder / "out"), "--report",
+                         str(folder / "ct.json")])
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads((folder / "ct.json").read_text()), M
+
+
+@pytest.fixture(scope="module")
+def flat_synthetic_ct(tmp_path_factory):
+    """`_synthetic_ct_scene` untilted."""
+    return _synthetic_ct_scene(tmp_path_factory.mktemp("flat"), None)[0]
+
+
+@pytest.mark.parametrize("angles", [PITCHED[0], pytest.param(PITCHED[1], marks=pytest.mark.xfail(
+    strict=True, reason="a defect: CGAL finds 14 initial points on this crop's tissue and "
+    "meshes no tetrahedra (ct_scene.py: 'CGAL produced no tetrahedra')"))])
+def test_tilted_synthetic_ct_landmarks_through_ct_scene(tmp_path, flat_synthetic_ct, angles):
+    """The synthetic head with ears and orbits made a CT (2 mm voxels), tilted, through
+    ct_scene.py with the frame estimated (`_synthetic_ct_scene`): every landmark of the
+    untilted scene (the upper profile's; it finds no Pg, Me nor tragion, the tilted one
+    does) is found, and lies, rotated back, within one voxel (its diagonal) of the untilted
+    one; the estimated frame is the tilt within 1 degree."""
+    rep, M = _synthetic_ct_scene(tmp_path, angles)
+    voxel = 2.0 * np.sqrt(3.0)
+    flat = flat_synthetic_ct["landmarks"]
+    assert {"N", "Prn", "Sn", "Ls", "Li"} <= set(flat) <= set(rep["landmarks"])
+    for k in flat:
+        back = M[:3, :3].T @ (np.array(rep["landmarks"][k]) - M[:3, 3])
+        assert np.linalg.norm(back - flat_synthetic_ct["landmarks"][k]) < voxel, k
+    assert _angle_deg(np.array(rep["head_frame"])[:3, :3], M[:3, :3]) < 1.0

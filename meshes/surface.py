@@ -1,0 +1,208 @@
+"""Triangle surfaces: face scans read from files, exact closest points, rigid registration.
+
+Serves the validation against a patient's outcome (`inverse.validation`) and the tissues'
+skin depth (`meshes.tissue`). A surface is points (N, 3) mm and triangles (T, 3), oriented
+outward (a face scan's camera side, the skin's air side).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from meshes.errors import MeshError
+
+#: Face-scan formats (3dMD cameras and photogrammetry write these), read by meshio.
+SCAN_SUFFIXES = (".stl", ".obj", ".ply")
+#: Candidate triangles per query point: the nearest by centroid (`closest_points`).
+CANDIDATES = 8
+#: Rigid registration (`register`): the correspondence cut-off (mm) of each stage, coarse to
+#: fine (a scan placed within about the first of the face), the iterations per stage, and the
+#: step (mm, at the face) under which a stage has converged.
+ICP_CUTOFFS_MM = (20.0, 8.0, 3.0, 1.5)
+ICP_ITERATIONS = 30
+ICP_STEP_MM = 1e-4
+
+
+def read_surface(path) -> tuple:
+    """(points (N, 3), triangles (T, 3)) of a surface file (`SCAN_SUFFIXES`), mm. `MeshError`
+    with one line for an unreadable file or one without triangles."""
+    import meshio
+
+    path = str(path)
+    if not path.lower().endswith(SCAN_SUFFIXES):
+        raise MeshError(f"{path}: a face scan must be one of {', '.join(SCAN_SUFFIXES)}")
+    try:
+        mesh = meshio.read(path)
+    except Exception as e:   # meshio raises many kinds for a bad file
+        raise MeshError(f"cannot read the surface {path}: {str(e).splitlines()[0]}") from None
+    tris = [c.data for c in mesh.cells if c.type == "triangle"]
+    tris = np.concatenate(tris) if tris else np.empty((0, 3), dtype=np.int64)
+    if len(tris) == 0:
+        raise MeshError(f"{path} has no triangles: a face scan needs its faces, not points "
+                        "only")
+    points = np.asarray(mesh.points, float).reshape(len(mesh.points), -1)[:, :3]
+    if not np.all(np.isfinite(points)):
+        raise MeshError(f"{path} has points that are not finite numbers")
+    return points, tris.astype(np.int64)
+
+
+def write_surface(path, points: np.ndarray, tris: np.ndarray, point_data=None) -> None:
+    """A surface to ``path`` (any meshio format: .ply, .stl, .xdmf ...)."""
+    import meshio
+
+    meshio.write(str(path), meshio.Mesh(points, [("triangle", tris)],
+                                        point_data=point_data or {}))
+
+
+def triangle_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Unit normals (T, 3) of the triangles, by their winding."""
+    n = np.cross(points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def vertex_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) at the vertices: the area-weighted mean of their triangles'."""
+    n = np.cross(points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]])
+    out = np.zeros_like(points)
+    for i in range(3):
+        np.add.at(out, tris[:, i], n)
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+
+def closest_on_triangles(p, a, b, c) -> np.ndarray:
+    """The closest points (..., 3) to points p on triangles (a, b, c), all (..., 3): the
+    projection where it falls inside the triangle, else the nearest point of its edges."""
+    n = np.cross(b - a, c - a)
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+    h = np.einsum("...i,...i->...", p - a, n)
+    q = p - h[..., None] * n
+    inside = np.ones(h.shape, dtype=bool)
+    for u, v in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("...i,...i->...", np.cross(v - u, q - u), n) >= 0
+    best, dist = q, np.full(h.shape, np.inf)
+    for u, v in ((a, b), (b, c), (c, a)):
+        d = v - u
+        t = np.einsum("...i,...i->...", p - u, d) / np.maximum(
+            np.einsum("...i,...i->...", d, d), 1e-300)
+        e = u + np.clip(t, 0.0, 1.0)[..., None] * d
+        de = np.linalg.norm(p - e, axis=-1)
+        closer = ~inside & (de < dist)
+        best = np.where(closer[..., None], e, best)
+        dist = np.where(closer, de, dist)
+    return best
+
+
+def closest_points(query: np.ndarray, points: np.ndarray, tris: np.ndarray) -> tuple:
+    """(distance (K,), closest point (K, 3), triangle (K,)) from each query (K, 3) to the
+    surface, among the `CANDIDATES` triangles nearest by centroid (exact where the triangles
+    are about as large as the distances between their centroids)."""
+    from scipy.spatial import cKDTree
+
+    k = min(CANDIDATES, len(tris))
+    _, cand = cKDTree(points[tris].mean(axis=1)).query(query, k=k)
+    cand = np.asarray(cand).reshape(len(query), k)
+    a, b, c = (points[tris[cand, i]] for i in range(3))
+    q = closest_on_triangles(query[:, None, :], a, b, c)
+    d = np.linalg.norm(q - query[:, None, :], axis=2)
+    j = np.argmin(d, axis=1)
+    rows = np.arange(len(query))
+    return d[rows, j], q[rows, j], cand[rows, j]
+
+
+def boundary_edges(tris: np.ndarray) -> np.ndarray:
+    """Edges (E, 2) that belong to one triangle only: the open rims of a surface."""
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    return uniq[count == 1]
+
+
+def on_rim(q: np.ndarray, points: np.ndarray, tris: np.ndarray, tol: float = 1e-6):
+    """Whether each closest point q (K, 3) lies on the surface's open rim (within ``tol``
+    mm): a query beyond what a cropped scan holds."""
+    from scipy.spatial import cKDTree
+
+    rim = boundary_edges(tris)
+    if len(rim) == 0:
+        return np.zeros(len(q), dtype=bool)
+    u, v = points[rim[:, 0]], points[rim[:, 1]]
+    length = float(np.linalg.norm(v - u, axis=1).max())
+    near = cKDTree((u + v) / 2).query_ball_point(q, length / 2 + tol)
+    out = np.zeros(len(q), dtype=bool)
+    for i, cand in enumerate(near):
+        if cand:
+            d = v[cand] - u[cand]
+            t = np.clip(np.einsum("ij,ij->i", q[i] - u[cand], d) / np.einsum("ij,ij->i", d, d),
+                        0.0, 1.0)
+            out[i] = np.linalg.norm(u[cand] + t[:, None] * d - q[i], axis=1).min() <= tol
+    return out
+
+
+def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Points (K, 3) moved by the 4×4 T."""
+    return x @ T[:3, :3].T + T[:3, 3]
+
+
+def _plane_step(x: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """The rigid 4×4 that best moves points x (K, 3) onto the planes through q (K, 3) with
+    normals n (K, 3), linearised in the rotation (point to plane: Chen and Medioni 1992), the
+    rotation then made exact (Rodrigues)."""
+    c = x.mean(axis=0)
+    A = np.c_[np.cross(x - c, n), n]
+    b = np.einsum("ij,ij->i", q - x, n)
+    w, t = np.split(np.linalg.lstsq(A, b, rcond=None)[0], 2)
+    angle = float(np.linalg.norm(w))
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / max(angle, 1e-300)
+    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, c + t - R @ c
+    return T
+
+
+def register(x: np.ndarray, points: np.ndarray, tris: np.ndarray) -> tuple:
+    """Rigid ICP of points x (K, 3) onto the surface (points, tris): (T 4×4 with T x on the
+    surface, distances (K,) after it, matched (K,) bool: within the last cut-off and not on
+    the surface's rim). Point to plane (`_plane_step`: a smooth patch such as a forehead slides
+    along itself, which point to point crawls through), trimmed at `ICP_CUTOFFS_MM`."""
+    T = np.eye(4)
+    normals = triangle_normals(points, tris)
+    for cut in ICP_CUTOFFS_MM:
+        for _ in range(ICP_ITERATIONS):
+            moved = apply(T, x)
+            d, q, tri = closest_points(moved, points, tris)
+            matched = (d <= cut) & ~on_rim(q, points, tris)
+            if matched.sum() < 6:
+                return T, d, matched
+            step = _plane_step(moved[matched], q[matched], normals[tri[matched]])
+            T = step @ T
+            if np.abs(apply(step, moved[matched]) - moved[matched]).max() < ICP_STEP_MM:
+                break
+    d, q, _ = closest_points(apply(T, x), points, tris)
+    return T, d, (d <= ICP_CUTOFFS_MM[-1]) & ~on_rim(q, points, tris)
+
+
+def subdivide(points: np.ndarray, tris: np.ndarray) -> tuple:
+    """(points, triangles): each triangle into four at its edges' midpoints (the same
+    surface, other vertices and triangles)."""
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    edges, inv = np.unique(e, axis=0, return_inverse=True)
+    a, b, c = tris.T
+    ab, bc, ca = len(points) + inv.reshape(3, -1)   # the midpoints of edges ab, bc, ca
+    return (np.vstack([points, points[edges].mean(axis=1)]),
+            np.vstack([np.c_[a, ab, ca], np.c_[ab, b, bc], np.c_[ca, bc, c], np.c_[ab, bc, ca]]))
+
+
+def synthetic_scan(points: np.ndarray, tris: np.ndarray, noise_mm: float, misplace: np.ndarray,
+                   keep=None, seed: int = 0) -> tuple:
+    """(points, triangles) of a face scan made from a skin surface, as a camera would give it
+    (tests and benchmarks of the validation): subdivided once (other vertices), noised along
+    its normals (Gaussian, SD ``noise_mm``), cropped to the vertices where ``keep(points,
+    triangles)`` (a callable giving (N,) bool; None: all), misplaced by the 4×4 ``misplace``."""
+    pts, tris = subdivide(points, tris)
+    rng = np.random.default_rng(seed)
+    pts = pts + rng.normal(0.0, noise_mm, (len(pts), 1)) * vertex_normals(pts, tris)
+    if keep is not None:
+        tris = tris[keep(pts, tris)[tris].all(axis=1)]
+    used = np.unique(tris)
+    index = np.full(len(pts), -1)
+    index[used] = np.arange(len(used))
+    return apply(misplace, pts[used]), index[tris]
