@@ -159,8 +159,10 @@ class Session:
 
     def _answer(self, skin, landmarks, p, iterations: int, seconds: float) -> dict:
         first = self.pred.predict(p - self.pred.p0)
+        motions = self.scene.transforms(p)
         return {"p": dict(zip(self.scene.param_names, p.tolist())), "vertices": skin.tolist(),
                 "landmarks": {n: np.asarray(x).tolist() for n, x in landmarks.items()},
+                "transforms": [motions[s].tolist() for s in self.scene.domain.segments],
                 "newton_iterations": int(iterations), "seconds": seconds,
                 "first_order_error_max_mm": float(np.linalg.norm(skin - first, axis=1).max())}
 

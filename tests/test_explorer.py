@@ -208,17 +208,23 @@ def test_same_answers_on_1_and_2_ranks():
     np.testing.assert_allclose(c2["vertices"], c1["vertices"], atol=1e-4)
 
 
+def _bone_at(scene, transforms) -> np.ndarray:
+    """The bone's vertices (B, 3) moved by each segment's 4×4 (in the scene's order)."""
+    b = scene["bone"]
+    x = np.asarray(b["vertices"])
+    out = x.copy()
+    for k, A in enumerate(np.asarray(T) for T in transforms):
+        on = np.asarray(b["segment"]) == k
+        out[on] = x[on] @ A[:3, :3].T + A[:3, 3]
+    return out
+
+
 def _first_order_bone(scene, p: dict) -> np.ndarray:
     """The bone's vertices (B, 3) at p to first order: each segment's T0 + dT dp."""
     b = scene["bone"]
     dp = np.array([p.get(n, p0) - p0 for n, p0 in zip(scene["param_names"], scene["p0"])])
-    x = np.asarray(b["vertices"])
-    out = x.copy()
-    for k, (T0, dT) in enumerate(zip(b["transforms"], b["transform_derivatives"])):
-        A = np.asarray(T0) + np.tensordot(dp, np.asarray(dT), axes=1)
-        on = np.asarray(b["segment"]) == k
-        out[on] = x[on] @ A[:3, :3].T + A[:3, 3]
-    return out
+    return _bone_at(scene, [np.asarray(T0) + np.tensordot(dp, np.asarray(dT), axes=1)
+                            for T0, dT in zip(b["transforms"], b["transform_derivatives"])])
 
 
 @pytest.fixture(scope="module")
@@ -242,9 +248,9 @@ def test_the_page_in_headless_chromium(request, tmp_path, which):
     """Real Chromium (SwiftShader WebGL), on the synthetic head and on the Cranium CT's
     scene: the page loads in a skin tone; a slider move draws x0 + S dp (1e-3 mm of the
     API's); the bone toggle shows the segments moved by their first-order motion under a
-    see-through skin; Solve shows the first-order error map with the API's maximum; the
-    console has no error. Saves the skin and the bone (ORTHODIFF_SCREENSHOT or tmp, per
-    scene)."""
+    see-through skin; Solve shows the first-order error map with the API's maximum, and the
+    bone by the segments' exact motions at p (the answer's); the console has no error. Saves
+    the skin and the bone (ORTHODIFF_SCREENSHOT or tmp, per scene)."""
     shot = Path(os.environ.get("ORTHODIFF_SCREENSHOT", tmp_path / "explorer.png"))
     shot = shot if which == "synthetic" else shot.with_name(f"{shot.stem}_{which}.png")
     if which == "synthetic":
@@ -292,6 +298,10 @@ def test_the_page_in_headless_chromium(request, tmp_path, which):
             shown_max = driver.execute_script("return window.explorer.errorMapMax()")
             status, out = launch.request(url + "api/solve", {"p": p})
             assert shown_max == pytest.approx(out["first_order_error_max_mm"], abs=1e-3)
+            driver.execute_script("return window.explorer.showBone(true)")
+            bone = np.asarray(driver.execute_script(
+                "return Array.from(window.explorer.bonePositions())")).reshape(-1, 3)
+            np.testing.assert_allclose(bone, _bone_at(scene, out["transforms"]), atol=1e-3)
             errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
             assert not errors, errors
             assert driver.execute_script("return window.explorer.lastError") is None

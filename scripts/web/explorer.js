@@ -163,6 +163,7 @@ function predict() {   // state.shown = x0 + S dp, a typed-array loop over the m
     out[i] = v;
   }
   state.error = null;
+  if (state.bone) state.bone.exact = null;
 }
 
 function predictedLandmarks() {
@@ -254,9 +255,10 @@ function showBone() {   // the bone under a see-through skin, or the skin alone
   return requestFrame();
 }
 
-function placeBone() {   // each segment's vertices by its motion at first order, T0 + dT dp
+function placeBone() {   // each segment's vertices by its motion: an answer's exact one, else
+  // the first order T0 + dT dp, as the skin
   const b = state.bone, d = dp(), x = boneGeometry.getAttribute('position').array;
-  const A = b.T.map((T0, k) => T0.map((row, r) => row.map((v, c) => {
+  const A = b.exact || b.T.map((T0, k) => T0.map((row, r) => row.map((v, c) => {
     let a = v;
     for (let j = 0; j < state.nP; j++) if (d[j] !== 0) a += b.dT[k][j][r][c] * d[j];
     return a;
@@ -407,6 +409,7 @@ function showAnswer(r, label) {   // the answer's skin, coloured by the first-or
                                 x[3 * i + 2] - first[3 * i + 2]);
   }
   state.answerLandmarks = true;
+  if (state.bone) state.bone.exact = r.transforms;   // the segments' motions at p, exact
   updateLandmarks(state.lmNames.flatMap((n) => r.landmarks[n]));
   status(`${label}: ${r.newton_iterations} iterations, ${r.seconds.toFixed(2)} s; ` +
          `first-order error max ${r.first_order_error_max_mm.toFixed(3)} mm`);
