@@ -2,9 +2,10 @@
 
 1. **Register** the post-operative face to the pre-operative scene on the skin that surgery
    does not move (`register_scan`, `stable_mask`): the forehead, the nasal bridge, the
-   orbits and the temples, `STABLE_ABOVE_MM` above the moving bone and off the nose. A rigid ICP
-   (`meshes.surface.register`) of that skin onto the scan; a registration whose overlap,
-   residual or facing shows it failed is a one-line error, never a number in a report.
+   orbits and the temples, `STABLE_ABOVE_MM` above the moving bone and off the nose. A
+   rigid ICP (`meshes.registration.register_surface`) of that skin onto the scan; a
+   registration whose overlap, residual or facing shows it failed is a one-line error,
+   never a number in a report.
 2. The bone movements are given (treatment parameters or VSP transforms).
 3. **Simulate** them (the forward solve).
 4. **Compare** (`compare`): per skin vertex, the signed distance from the predicted skin to
@@ -32,7 +33,7 @@ from meshes.errors import MeshError
 #: with 25), the nose up to the nasion 0.8 mm (tests/test_validate.py checks 0.1 mm).
 STABLE_ABOVE_MM = 30.0
 #: A registration fails when fewer than this share of the stable skin finds the scan within
-#: the last cut-off (`meshes.surface.ICP_CUTOFFS_MM`): no overlap, a scan of something else.
+#: the last cut-off (`meshes.registration.ICP_CUTOFFS_MM`): no overlap, a scan of something else.
 OVERLAP_MIN = 0.5
 #: ... or when the RMS distance (mm) of the matched stable skin exceeds this: a surface scan
 #: of a face is accurate to about 0.2-0.5 mm (3dMD), and the skin mesh lies within its facet
@@ -114,13 +115,14 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
     """The scan (points, triangles; its own frame) registered to the skin (``skin`` (N, 3)
     rest positions, ``skin_tris``) on the ``stable`` (N,) vertices (module docstring).
     `MeshError` with one line where it fails."""
-    from meshes.surface import register, triangle_normals, vertex_normals
+    from meshes.registration import register_surface
+    from meshes.surface import triangle_normals, vertex_normals
 
     if stable.sum() < 3:
         raise MeshError(f"no skin lies {STABLE_ABOVE_MM:g} mm above the moving bone to register "
                         "the scan on (forehead, nasal bridge, orbits, temples)")
     x = skin[stable]
-    T, d, matched = register(x, scan_points, scan_tris)
+    T, d, matched = register_surface(x, scan_points, scan_tris)
     overlap = float(matched.mean())
     if overlap < OVERLAP_MIN:
         raise MeshError(f"the scan does not overlap the face: {overlap:.0%} of the skin surgery "

@@ -1,8 +1,9 @@
-"""Triangle surfaces: face scans read from files, exact closest points, rigid registration.
+"""Triangle surfaces: face scans read from files, exact closest points.
 
-Serves the validation against a patient's outcome (`inverse.validation`) and the tissues'
-skin depth (`meshes.tissue`). A surface is points (N, 3) mm and triangles (T, 3), oriented
-outward (a face scan's camera side, the skin's air side).
+Serves the validation against a patient's outcome (`inverse.validation`,
+`meshes.registration`) and the tissues' skin depth (`meshes.tissue`). A surface is points
+(N, 3) mm and triangles (T, 3), oriented outward (a face scan's camera side, the skin's air
+side).
 """
 
 from __future__ import annotations
@@ -15,12 +16,6 @@ from meshes.errors import MeshError
 SCAN_SUFFIXES = (".stl", ".obj", ".ply")
 #: Candidate triangles per query point: the nearest by centroid (`closest_points`).
 CANDIDATES = 8
-#: Rigid registration (`register`): the correspondence cut-off (mm) of each stage, coarse to
-#: fine (a scan placed within about the first of the face), the iterations per stage, and the
-#: step (mm, at the face) under which a stage has converged.
-ICP_CUTOFFS_MM = (20.0, 8.0, 3.0, 1.5)
-ICP_ITERATIONS = 30
-ICP_STEP_MM = 1e-4
 
 
 def read_surface(path) -> tuple:
@@ -142,44 +137,6 @@ def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
     return x @ T[:3, :3].T + T[:3, 3]
 
 
-def _plane_step(x: np.ndarray, q: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """The rigid 4×4 that best moves points x (K, 3) onto the planes through q (K, 3) with
-    normals n (K, 3), linearised in the rotation (point to plane: Chen and Medioni 1992), the
-    rotation then made exact (Rodrigues)."""
-    c = x.mean(axis=0)
-    A = np.c_[np.cross(x - c, n), n]
-    b = np.einsum("ij,ij->i", q - x, n)
-    w, t = np.split(np.linalg.lstsq(A, b, rcond=None)[0], 2)
-    angle = float(np.linalg.norm(w))
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / max(angle, 1e-300)
-    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, c + t - R @ c
-    return T
-
-
-def register(x: np.ndarray, points: np.ndarray, tris: np.ndarray) -> tuple:
-    """Rigid ICP of points x (K, 3) onto the surface (points, tris): (T 4×4 with T x on the
-    surface, distances (K,) after it, matched (K,) bool: within the last cut-off and not on
-    the surface's rim). Point to plane (`_plane_step`: a smooth patch such as a forehead slides
-    along itself, which point to point crawls through), trimmed at `ICP_CUTOFFS_MM`."""
-    T = np.eye(4)
-    normals = triangle_normals(points, tris)
-    for cut in ICP_CUTOFFS_MM:
-        for _ in range(ICP_ITERATIONS):
-            moved = apply(T, x)
-            d, q, tri = closest_points(moved, points, tris)
-            matched = (d <= cut) & ~on_rim(q, points, tris)
-            if matched.sum() < 6:
-                return T, d, matched
-            step = _plane_step(moved[matched], q[matched], normals[tri[matched]])
-            T = step @ T
-            if np.abs(apply(step, moved[matched]) - moved[matched]).max() < ICP_STEP_MM:
-                break
-    d, q, _ = closest_points(apply(T, x), points, tris)
-    return T, d, (d <= ICP_CUTOFFS_MM[-1]) & ~on_rim(q, points, tris)
-
-
 def subdivide(points: np.ndarray, tris: np.ndarray) -> tuple:
     """(points, triangles): each triangle into four at its edges' midpoints (the same
     surface, other vertices and triangles)."""
@@ -206,3 +163,4 @@ def synthetic_scan(points: np.ndarray, tris: np.ndarray, noise_mm: float, mispla
     index = np.full(len(pts), -1)
     index[used] = np.arange(len(used))
     return apply(misplace, pts[used]), index[tris]
+
