@@ -67,7 +67,8 @@ class Session:
             none for an external mesh).
     """
 
-    def __init__(self, scene, make_scene=None, p0=None, targets=None):
+    def __init__(self, scene, make_scene=None, p0=None, targets=None, validation=None):
+        self.validation = validation   # shown as it is (`payload`)
         self.occlusion = "free" if scene.treatment.occlusion is None else "final"
         self._make_scene, self.scenes = make_scene, {self.occlusion: scene}
         self.rest_landmarks = scene.landmarks(rest=True)   # the same in every scene
@@ -114,8 +115,10 @@ class Session:
         """The scene as the page needs it (GET /api/scene): parameters, skin triangles,
         skin at rest and at p0 (N, 3) mm, landmarks at p0 and their sensitivities
         (L, 3, Np) mm per unit, targets, the head's axes (``head_axes``: left, anterior,
-        superior, scene frame) for the page's Front and Profile views, and the bone
-        (`_bone`)."""
+        superior, scene frame) for the page's Front and Profile views, the bone (`_bone`),
+        and a validation's map where the session has one (``validation``:
+        ``signed_distance_mm`` (N,) per skin vertex, None where the scan does not hold it,
+        and its ``error_mm``; `scripts/validate.py`)."""
         scene, pred = self.scene, self.pred
         tr = scene.treatment
         return {"param_names": tr.names, "units": [q.unit for q in tr.params],
@@ -127,7 +130,7 @@ class Session:
                 "landmark_sensitivity": pred.lm_S.tolist(),
                 "targets": self.targets,
                 "head_axes": scene.head_frame.rotation.T.tolist(),
-                "bone": self._bone()}
+                "bone": self._bone(), "validation": self.validation}
 
     def _bone(self) -> dict:
         """The bone under the skin for the page (GET /api/scene's ``bone``): its surface at

@@ -2,12 +2,14 @@
 """The interactive explorer in the browser (paper Fig. 5): first-order sliders, true solves.
 
     mpirun -n 2 python3 scripts/explore_web.py --case class3-asym --resolution paper \
-        [--params P.json | --plan-report out/demo/cranium/report.json] \
-        [--host 127.0.0.1] [--port 8765]
+        [--params P.json | --plan-report out/demo/cranium/report.json \
+         | --validation out/validation/report.json] [--host 127.0.0.1] [--port 8765]
 
 It solves the equilibrium at p0 (``--params``/``--p``, or a plan report's result, its case,
-resolution and occlusion), computes the skin sensitivities there, prints the URL and serves
-the page (``scripts/web``, three.js from npm) and its JSON API until SIGINT or SIGTERM (exit 0).
+resolution and occlusion; or a ``validate.py`` report's movements, whose map of the
+predicted skin's distance to the real one the page then shows), computes the skin
+sensitivities there, prints the URL and serves the page (``scripts/web``, three.js from npm)
+and its JSON API until SIGINT or SIGTERM (exit 0).
 
 API (README): ``GET /api/scene``, ``GET /api/sensitivity`` (float32 LE, (N_skin, 3, Np), C
 order), ``GET /api/progress``, and ``POST /api/solve``, ``/api/corrected``,
@@ -45,6 +47,8 @@ def main(argv=None):
     ap = scene_parser(__doc__, params="the equilibrium p0 to explore at")
     ap.add_argument("--plan-report", help="a plan.py report: explore at its planned "
                     "parameters (its case, resolution and occlusion unless given)")
+    ap.add_argument("--validation", help="a validate.py report: explore at its movements "
+                    "(its scene unless given) and show its distance map")
     ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm shown and planned to "
                     "(default: the plan report's, or the case's clinical goal)")
     ap.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback "
@@ -68,9 +72,16 @@ def main(argv=None):
     err = comm.bcast(err, root=0)
     if err:
         raise InputError(err)
-    report = read_json(args.plan_report, "plan report", comm) if args.plan_report else None
-    if report is not None:
-        _apply_report(args, argv, report)
+    if args.plan_report and args.validation:
+        raise InputError("give a plan report or a validation report, not both")
+    report, validation = None, None
+    if args.plan_report:
+        report = read_json(args.plan_report, "plan report", comm)
+        _apply_report(args, argv, report, "params_optimal", args.plan_report, "plan.py")
+    elif args.validation:
+        report = read_json(args.validation, "validation report", comm)
+        _apply_report(args, argv, report, "params", args.validation, "validate.py")
+        validation = _validation_map(report, args.validation)
     first, used = args.occlusion, args.params_used
 
     def make_scene(occlusion):   # the first scene, or the other occlusion's for a plan
@@ -80,28 +91,35 @@ def main(argv=None):
 
     scene = make_scene(first)
     if report is not None and not (args.params or args.p):
-        p0 = dict(zip(report["param_names"], report["params_optimal"]))
+        p0 = dict(zip(report["param_names"],
+                      report["params_optimal" if args.plan_report else "params"]))
     else:
         p0 = load_params(args.params, args.p, scene)
     targets = None
     if args.targets:
         targets = read_json(args.targets, "targets file", comm)
-    elif report is not None:
+    elif args.plan_report:
         targets = {n: v["target"] for n, v in report.get("landmarks", {}).items()}
-    session = Session(scene, make_scene, scene.param_vector(p0), targets)
+    session = Session(scene, make_scene, scene.param_vector(p0), targets, validation)
+    if validation is not None and len(validation["signed_distance_mm"]) != len(
+            session.pred.vertices):
+        session.destroy()
+        raise InputError(f"{args.validation} maps {len(validation['signed_distance_mm'])} "
+                         f"skin vertices, the scene has {len(session.pred.vertices)}: it "
+                         "belongs to another scene")
     try:
         return Server(session, comm, sock, PAGE_FILES, WEB, THREE, MAX_BODY).run()
     finally:
         session.destroy()
 
 
-def _apply_report(args, argv, report: dict) -> None:
-    """A plan report's case, resolution, occlusion, contact, material and parameters, where no
-    option gives them."""
+def _apply_report(args, argv, report: dict, params: str, path, script: str) -> None:
+    """A report's case, resolution, occlusion, contact, material and parameter names, where
+    no option gives them; its parameters are under the key ``params``."""
     from meshes.errors import InputError
 
-    if not isinstance(report, dict) or not {"param_names", "params_optimal"} <= set(report):
-        raise InputError(f"{args.plan_report} is not a plan.py report")
+    if not isinstance(report, dict) or not {"param_names", params} <= set(report):
+        raise InputError(f"{path} is not a {script} report")
     given = {a.split("=")[0] for a in argv}
     if "--mesh" not in given and "--case" not in given and report.get("mesh"):
         args.mesh = report["mesh"]
@@ -115,6 +133,24 @@ def _apply_report(args, argv, report: dict) -> None:
             setattr(args, key, report[key])
     if "--params-used" not in given:
         args.params_used = ",".join(report["param_names"])
+
+
+def _validation_map(report: dict, path) -> dict:
+    """The page's ``validation``: the report's signed distances per skin vertex (None where
+    the scan does not hold it), read from its ``skin_distance`` XDMF, and its ``error_mm``."""
+    import meshio
+    import numpy as np
+
+    from meshes.errors import InputError
+
+    try:
+        d = meshio.read(report["skin_distance"]).point_data["signed_distance_mm"]
+    except (KeyError, OSError, ValueError) as e:
+        raise InputError(f"{path}: cannot read its skin distance map "
+                         f"{report.get('skin_distance')!r}: {e}") from None
+    d = np.asarray(d, float).ravel()
+    return {"signed_distance_mm": [None if np.isnan(v) else float(v) for v in d],
+            "error_mm": report.get("error_mm")}
 
 
 if __name__ == "__main__":

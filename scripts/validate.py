@@ -72,15 +72,18 @@ def main(argv=None):
     after = skin.at(scene)
     timings["simulation"] = time.perf_counter() - t
     t = time.perf_counter()
-    part, d, covered = validation.compare(after, rest, frame, landmarks_rest,
+    part, d, covered = validation.compare(after, rest, tris, frame, landmarks_rest,
                                           scene.landmarks(), scan, scan_tris)
     timings["comparison"] = time.perf_counter() - t
-    report = {"case": scene.case or scene.domain.name, "post": str(args.post),
+    out = Path(args.out)
+    report = {"case": scene.case or scene.domain.name, "mesh": args.mesh,
+              "resolution": scene.resolution, "occlusion": scene.treatment.occlusion,
+              "contact": args.contact, "material": args.material, "post": str(args.post),
+              "skin_distance": str(out / "distance.xdmf"),
               "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
               "registration": reg.report(), "param_names": scene.param_names,
               "params": p, **part, "newton_iterations": stats.newton_iterations,
               "warnings": warnings + stats.warnings, "timings_s": timings}
-    out = Path(args.out)
     title = f"{report['case']}: the prediction against the outcome"
     if comm.rank == 0:
         from scripts._render import render_distance

@@ -236,3 +236,35 @@ def test_bad_scan_gets_one_line_and_writes_nothing(tmp_path, truth, case):
     assert r.returncode == 2 and errors == lines[-1:], r.stderr[-2000:]
     assert needle in errors[0], errors[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_explorer_shows_the_validation_map(tmp_path, truth):
+    """explore_web.py --validation REPORT serves the report's scene at its movements, and the
+    page (headless Chromium) opens on its distance map: the colour map's top is the report's
+    largest error, the legend says so; a report of another scene is one line."""
+    import scripts._launch as launch
+
+    scan = tmp_path / "scan.ply"
+    _scan(truth, scan)
+    r, out, rep = _validate(tmp_path, truth, scan, *_p(P_STAR))
+    assert r.returncode == 0, r.stderr[-2000:]
+    report = json.loads(rep.read_text())
+    with launch.explorer(["--validation", str(rep)]) as (url, proc):
+        scene = launch.request(url + "api/scene")[1]
+        assert scene["p0"] == [P_STAR.get(n, 0.0) for n in scene["param_names"]]
+        driver = launch.chromium()
+        try:
+            driver.get(url)
+            launch.wait_ready(driver)
+            assert driver.find_element("id", "colour").get_attribute("value") == "validation"
+            assert "real skin" in driver.find_element("id", "legend-title").text
+            shown = driver.execute_script("return window.explorer.validationMax()")
+            assert shown == pytest.approx(report["error_mm"]["max"], abs=1e-4)
+        finally:
+            driver.quit()
+    assert proc.returncode == 0
+    other = _run([sys.executable, str(ROOT / "scripts" / "explore_web.py"), "--validation",
+                  str(rep), "--case", "class1", "--resolution", "tiny", "--port", "0"])
+    errors = [ln for ln in other.stderr.splitlines() if ln.startswith("error: ")]
+    assert other.returncode == 2 and len(errors) == 1 and "another scene" in errors[0], \
+        other.stderr[-2000:]

@@ -19,6 +19,8 @@ const state = {
   x0: null, rest: null, S: null, nP: 0, nV: 0,
   lm0: null, lmS: null, lmNames: [], targets: null,
   bone: null,         // the bone under the skin (GET /api/scene's bone), drawn on demand
+  validation: null,   // |predicted - real skin| mm per vertex (NaN: not in the scan), or null
+  colourMax: null,    // the colour map's top, mm
   shown: null,        // Float32Array (nV*3) drawn now: the prediction, or a solve's answer
   error: null,        // per-vertex |answer - prediction| after Solve/Corrected, else null
   pending: null,      // timeStamp of the slider event waiting for its frame
@@ -37,6 +39,8 @@ const explorer = {
   bonePositions: () => (boneMesh.visible
     ? Float32Array.from(boneGeometry.getAttribute('position').array) : null),
   skinOpacity: () => mesh.material.opacity,
+  validationMax: () => ($('colour').value === 'validation' && !state.error
+    ? state.colourMax : null),
   lastError: null,
 };
 window.explorer = explorer;
@@ -123,6 +127,12 @@ async function loadScene() {
     new Float32Array(state.bone.rest.length), 3));
   boneGeometry.setIndex(s.bone.triangles.flat());
   $('occlusion').value = s.occlusion;
+  state.validation = s.validation && Float32Array.from(
+    s.validation.signed_distance_mm, (v) => (v === null ? NaN : Math.abs(v)));
+  if (state.validation && !$('colour').querySelector('option[value="validation"]')) {
+    $('colour').add(new Option('validation: predicted to real skin', 'validation'));
+    $('colour').value = 'validation';
+  }
   const first = geometry.getAttribute('position') === undefined
     || geometry.getAttribute('position').count !== state.nV;
   if (first) {
@@ -188,6 +198,9 @@ function colourise() {
     geometry.getAttribute('color').needsUpdate = true;
     $('legend').hidden = true;
     return;
+  } else if ($('colour').value === 'validation') {
+    value = (i) => state.validation[i];
+    title = '|predicted - real skin| mm (validate.py; grey: not in the scan)';
   } else {
     const ref = $('colour').value === 'rest' ? state.rest : state.x0;
     value = (i) => Math.hypot(x[3 * i] - ref[3 * i], x[3 * i + 1] - ref[3 * i + 1],
@@ -199,6 +212,7 @@ function colourise() {
   for (let i = 0; i < n; i++) { vals[i] = value(i); if (vals[i] > hi) hi = vals[i]; }
   const scale = hi > 1e-9 ? 1 / hi : 0;
   for (let i = 0; i < n; i++) {
+    if (Number.isNaN(vals[i])) { col[3 * i] = col[3 * i + 1] = col[3 * i + 2] = 0.5; continue; }
     const t = Math.min(vals[i] * scale, 1) * (STOPS.length - 1);
     const k = Math.min(Math.floor(t), STOPS.length - 2), f = t - k;
     const a = STOPS[k], b = STOPS[k + 1];
@@ -210,6 +224,7 @@ function colourise() {
   $('legend').hidden = false;
   $('legend-title').textContent = title;
   $('legend-hi').textContent = hi.toFixed(2);
+  state.colourMax = hi;
 }
 
 function buildMarkers() {
