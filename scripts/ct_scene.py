@@ -7,7 +7,6 @@
     python3 scripts/plan.py --mesh out/headsq/scene.vtu --occlusion free --targets T.json
     python3 scripts/ct_scene.py --ct CT --propose-osteotomies proposed.json
 
-
 ``--ct``: a DICOM folder, NIfTI, NRRD, MetaImage (.mha/.mhd) or an InVesalius .inv3 project
 (HU), or a label map with ``--labelmap`` (3D Slicer segmentation: 1 tissue, 2 bone). The
 osteotomy file holds the cut planes, the crop and optionally the head frame (`meshes.ct`,
