@@ -157,10 +157,10 @@ def signed_distance(x: np.ndarray, normals: np.ndarray, points: np.ndarray,
     (K, 3) to the surface: > 0 where x lies on the side its normals point to. Covered where
     the closest point lies inside the surface, not on its open rim, and the surface there
     faces the way x does, within `COVER_COS`."""
-    from meshes.surface import closest_points, on_rim, triangle_normals
+    from meshes.surface import closest_points, normals_at, on_rim
 
     d, q, tri = closest_points(x, points, tris)
-    n = triangle_normals(points, tris)[tri]
+    n = normals_at(points, tris, tri, q)   # one normal on an edge, whichever triangle
     side = np.einsum("ij,ij->i", x - q, n)
     facing = np.einsum("ij,ij->i", normals, n) > COVER_COS
     return np.where(side < 0, -d, d), ~on_rim(q, points, tris) & facing
