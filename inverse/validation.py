@@ -122,7 +122,7 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
     rest positions, ``skin_tris``) on the ``stable`` (N,) vertices (module docstring).
     `MeshError` with one line where it fails."""
     from meshes.registration import register_surface
-    from meshes.surface import triangle_normals, vertex_normals
+    from meshes.surface import apply, closest_points, normals_at, vertex_normals
 
     if stable.sum() < 3:
         raise MeshError(f"no skin lies {STABLE_ABOVE_MM:g} mm above the moving bone to register "
@@ -139,12 +139,10 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
         raise MeshError(f"the scan does not fit the face where surgery moves nothing: residual "
                         f"{residual:.2f} mm RMS (at most {RESIDUAL_MAX_MM:g}): a scan of "
                         "something else, or of another patient")
-    from meshes.surface import apply, closest_points
-
-    _, _, tri = closest_points(apply(T, x[matched]), scan_points, scan_tris)
+    _, q, tri = closest_points(apply(T, x[matched]), scan_points, scan_tris)
     n_skin = vertex_normals(skin, skin_tris)[stable][matched] @ T[:3, :3].T
     facing = float(np.median(np.einsum("ij,ij->i", n_skin,
-                                       triangle_normals(scan_points, scan_tris)[tri])))
+                                       normals_at(scan_points, scan_tris, tri, q))))
     if facing < FACING_MIN:
         raise MeshError(f"the scan's faces point into the head (median cosine {facing:.2f} with "
                         "the skin's normals): a scan mirrored left to right, or inside out")
