@@ -18,7 +18,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from scripts.bench_ct import CTS
+from scripts._launch import mpirun
+from scripts.bench_ct import CTS, _run
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The truth's movements (a LeFort I advance with some impaction) and the scan's
@@ -61,22 +62,19 @@ def validation(args) -> None:
     with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                    ORTHODIFF_CACHE=cache)
-        mesh = Path(out) / "scene"
-        r = subprocess.run([sys.executable, str(ROOT / "scripts" / "ct_scene.py"), "--ct",
-                            str(ct_path), "--osteotomies", str(scene_file), "--resolution",
-                            args.resolution, "--out", str(mesh)], capture_output=True,
-                           text=True, env=env)
-        if r.returncode != 0:
-            raise SystemExit(f"ct_scene.py failed: {r.stderr.strip().splitlines()[-1:]}")
+        built = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene_file),
+                                     "--resolution", args.resolution, "--out",
+                                     str(Path(out) / "scene")], env)
+        if "error" in built:
+            raise SystemExit(f"ct_scene.py failed: {built['error']}")
+        mesh = built["mesh"]
         scan = Path(out) / "post.ply"
-        M, rest = _truth_scan(str(mesh / "scene.vtu"), scan)
+        M, rest = _truth_scan(mesh, scan)
         for n in (int(k) for k in args.ranks.split(",")):
             rep = Path(out) / f"v{n}.json"
-            mpi = ["mpirun", "-n", str(n), "--allow-run-as-root", "--oversubscribe"] \
-                if n > 1 else []
-            r = subprocess.run(mpi + [
-                sys.executable, str(ROOT / "scripts" / "validate.py"), "--mesh",
-                str(mesh / "scene.vtu"), "--post", str(scan), "--out", str(Path(out) / f"v{n}"),
+            r = subprocess.run(mpirun(n) + [
+                sys.executable, str(ROOT / "scripts" / "validate.py"), "--mesh", mesh, "--post",
+                str(scan), "--out", str(Path(out) / f"v{n}"),
                 "--report", str(rep), "--p", *[f"{k}={v}" for k, v in P_STAR.items()]],
                 capture_output=True, text=True, env=env)
             if r.returncode != 0:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_scripts import ROOT, _mpirun, _run
+from test_scripts import ROOT, _mpirun, _one_line_error, _run
 
 from scripts._common import CRANIUM_CT, HEADSQ_CT
 
@@ -466,10 +466,7 @@ def test_bad_ct_input_gets_one_line_and_writes_nothing(tmp_path, cache, case):
         lm.write_text(json.dumps({"Pg": [0.0, 140.0, -64.0]}))   # 40 mm in front of the chin
         extra = ["--landmarks", str(lm)]
     r, out = _ct_scene(tmp_path, ct, scene, *extra)
-    lines = r.stderr.strip().splitlines()
-    errors = [ln for ln in lines if ln.startswith("error: ")]
-    assert r.returncode == 2 and errors == lines[-1:], r.stderr[-2000:]
-    assert needle in errors[0], errors[0]
+    _one_line_error(r, needle)
     assert not out.exists() or not any(out.iterdir())
 
 

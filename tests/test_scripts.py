@@ -25,6 +25,15 @@ def _run(cmd, env=None, **kw):
                           errors="replace", env=env, **kw)
 
 
+def _one_line_error(r, needle: str) -> None:
+    """A script run ``r`` refused as bad input: exit 2, its last stderr line its only
+    ``error: `` line, which names ``needle``."""
+    lines = r.stderr.strip().splitlines()
+    errors = [ln for ln in lines if ln.startswith("error: ")]
+    assert r.returncode == 2 and errors == lines[-1:], r.stderr[-2000:]
+    assert needle in errors[0], errors[0]
+
+
 def _mpirun(n):
     from scripts._launch import mpirun
 
