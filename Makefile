@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py python3-petsc4py \
             libopenblas0-pthread mpi-default-bin python3-venv python3-matplotlib python3-scipy \
-            python3-pygalmesh invesalius-examples \
+            python3-pygalmesh python3-skimage invesalius-examples \
             python3-fastapi python3-uvicorn chromium chromium-driver python3-selenium
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
@@ -21,7 +21,7 @@ install: $(VENV)/.installed $(WEB)/node_modules/.installed
 	  | grep -q 'install ok installed' || echo $$p; done); \
 	if [ -n "$$missing" ]; then echo "apt-get install $$missing"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; fi
-	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio, pygalmesh, fastapi, uvicorn, selenium" \
+	@/usr/bin/python3 -c "import dolfinx, gmsh, meshio, pygalmesh, skimage, fastapi, uvicorn, selenium" \
 	  && touch $@
 
 # PyPI packages (SimpleITK) are installed against a constraints file that pins Debian's numpy

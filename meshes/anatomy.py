@@ -77,6 +77,9 @@ class Anatomy:
             (`meshes.tissue.TISSUES`), rows summing to 1; None: unknown.
         material: its material unless a scene says otherwise, "tissues" (needs
             ``tissues``) or "homogeneous" (the paper's single material).
+        thresholds: a CT scene's segmentation, ``{"skin_hu": HU, "bone_hu": HU}`` (None
+            for a label map's), which a post-operative CT of it is read with
+            (`inverse.postop`); None for other scenes.
     """
 
     points: np.ndarray
@@ -92,6 +95,7 @@ class Anatomy:
     contact: str = "sliding"
     tissues: np.ndarray | None = None
     material: str = "homogeneous"
+    thresholds: dict | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -235,6 +239,7 @@ class Anatomy:
                 np.asarray(self.occlusion).tolist(),
                 "head_frame": None if self.head_frame is None else self.head_frame.report(),
                 "contact": self.contact, "material": self.material,
+                "thresholds": self.thresholds,
                 "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
                 "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
                               for k, v in self.landmarks.items()}}
@@ -264,7 +269,8 @@ class Anatomy:
                            head_frame=HeadFrame.from_report(meta.get("head_frame")),
                            contact=meta.get("contact", "sliding"),
                            tissues=d["tissues"] if "tissues" in d else None,
-                           material=meta.get("material", "homogeneous"))
+                           material=meta.get("material", "homogeneous"),
+                           thresholds=meta.get("thresholds"))
         except (OSError, KeyError, ValueError) as e:
             raise MeshError(f"cannot read anatomy file {path}: {e}") from e
 

@@ -328,7 +328,9 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
         raise MeshError("no fixed bone is left: the cuts free all bone; the skull must hold")
     keep = tags != 0
     anatomy = Anatomy(points, cells, facets[keep], tags[keep], segments, {}, {},
-                      name=f"{Path(ct_path).name}/{resolution}", head_frame=frame)
+                      name=f"{Path(ct_path).name}/{resolution}", head_frame=frame,
+                      thresholds=None if is_map else {
+                          "skin_hu": float(spec.get("skin_hu", seg.SKIN_HU)), "bone_hu": bone_hu})
     anatomy.validate()
     timings["classify"] = time.perf_counter() - t
     t = time.perf_counter()

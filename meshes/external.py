@@ -24,6 +24,8 @@ Two paths, both ending in a validated `Anatomy`:
                                                  # with "head_frame_sources" and
                                                  # "head_frame_points" (read back) and
                                                  # "head_tilt_deg" (written, not read)
+        "ct_thresholds": {"skin_hu": -400, "bone_hu": 226},  # optional: a CT scene's
+                                                 # segmentation (`inverse.postop`)
         "landmarks": {"Pg": [0, 101.7, -66], "Li": {"facet": [i, j, k], "weights": [a, b, c]}}}
 
    A landmark given as a point is projected onto the nearest skin facet; it must lie within
@@ -193,7 +195,8 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
                       head_frame=_head_frame(spec, sidecar),
                       contact=spec.get("contact", "sliding"),
                       tissues=_tissues(mesh, spec.get("tissue_data"), path),
-                      material=spec.get("material", "homogeneous"))
+                      material=spec.get("material", "homogeneous"),
+                      thresholds=spec.get("ct_thresholds"))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
@@ -317,5 +320,7 @@ def write_tet_mesh(anatomy: Anatomy, path) -> list:
         spec["occlusion"] = np.asarray(anatomy.occlusion).tolist()
     if anatomy.head_frame is not None:
         spec.update(anatomy.head_frame.report())
+    if anatomy.thresholds is not None:
+        spec["ct_thresholds"] = anatomy.thresholds
     sidecar.write_text(json.dumps(spec, indent=1) + "\n")
     return [path, sidecar]

@@ -71,7 +71,7 @@ def _drop_small(mask, min_voxels: int) -> np.ndarray:
     return mask & ~small[lab]
 
 
-def _fill_axial(mask) -> np.ndarray:
+def fill_axial(mask) -> np.ndarray:
     """mask with every hole of each axial slice filled, and its 3-D holes."""
     from scipy import ndimage
 
@@ -81,19 +81,25 @@ def _fill_axial(mask) -> np.ndarray:
     return out
 
 
-def labels_from_ct(volume: Volume, skin_hu: float = SKIN_HU, bone_hu: float = BONE_HU):
-    """(body, bone) boolean masks of a CT in HU, by thresholds (see the module docstring)."""
-    from scipy import ndimage
-
+def body_mask(volume: Volume, skin_hu: float = SKIN_HU) -> np.ndarray:
+    """The body (bool, the volume's shape) of a CT in HU: above ``skin_hu``, the largest
+    component (see the module docstring)."""
     hu = volume.array
-    body = hu > skin_hu
-    lab, n = _components(body)
+    lab, n = _components(hu > skin_hu)
     if n == 0:
         raise MeshError(f"no body found in {volume.name} at the skin threshold {skin_hu:g} HU "
                         f"(values span {hu.min():g} to {hu.max():g}); is it a CT in HU?")
     size = np.bincount(lab.ravel())
     size[0] = 0
-    body = lab == int(np.argmax(size))
+    return lab == int(np.argmax(size))
+
+
+def labels_from_ct(volume: Volume, skin_hu: float = SKIN_HU, bone_hu: float = BONE_HU):
+    """(body, bone) boolean masks of a CT in HU, by thresholds (see the module docstring)."""
+    from scipy import ndimage
+
+    hu = volume.array
+    body = body_mask(volume, skin_hu)
     bone = (hu > bone_hu) & body
     if not bone.any():
         raise MeshError(f"no bone found in {volume.name} above {bone_hu:g} HU")
@@ -126,7 +132,7 @@ def label_volume(volume: Volume, body, bone, free_faces=()) -> np.ndarray:
     voxel = float(np.prod(volume.spacing))
     face6 = ndimage.generate_binary_structure(3, 1)
     bone = _drop_small(bone, int(np.ceil(MIN_BONE_MM3 / voxel)))
-    filled = _fill_axial(body)
+    filled = fill_axial(body)
     outside = ~filled
     inner_air = filled & ~body
     airway = _drop_small(inner_air, int(np.ceil(MIN_AIR_MM3 / voxel)))
