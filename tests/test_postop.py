@@ -215,6 +215,31 @@ def test_bad_post_ct_gets_one_line_and_writes_nothing(tmp_path, synthetic, case)
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_no_stable_region_gets_one_line_and_writes_nothing(tmp_path, synthetic_ct,  # noqa: F811
+                                                           cache):  # noqa: F811
+    """An empty registration region: a scene cropped 10 mm above its LeFort I cut holds no
+    skin and no fixed bone 30 mm above the moving bone; validated against a face scan or a CT,
+    one line naming it, nothing written."""
+    from meshes.surface import write_surface
+
+    ct, scene_file = synthetic_ct
+    spec = json.loads(scene_file.read_text())
+    spec["crop"]["max"][2] = spec["lefort1"]["point"][2] + 10.0
+    low = tmp_path / "low.json"
+    low.write_text(json.dumps(spec))
+    r = _run(CT_SCENE + ["--ct", str(ct), "--osteotomies", str(low), "--out",
+                         str(tmp_path / "scene")])
+    assert r.returncode == 0, r.stderr[-2000:]
+    case = {"mesh": tmp_path / "scene" / "scene.vtu", "pre": ct, "post": ct}
+    scan = tmp_path / "scan.ply"
+    write_surface(scan, np.eye(3) * 50.0, np.array([[0, 1, 2]]))
+    for post, needle in ((None, "no fixed bone of the scene lies 30 mm above"),
+                         (scan, "no skin lies 30 mm above")):
+        r, out, _ = _validate(tmp_path, case, post=post, pre=post is None, name="v")
+        _one_line_error(r, needle)
+        assert not out.exists()
+
+
 def test_a_scene_without_ct_thresholds_refuses_a_post_ct(tmp_path, synthetic):
     """A synthetic case (no CT behind it) validated against a CT: one line, nothing written."""
     out = tmp_path / "v"
