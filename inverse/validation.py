@@ -137,7 +137,8 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
         raise MeshError(f"no skin lies {STABLE_ABOVE_MM:g} mm above the moving bone to register "
                         "the scan on (forehead, nasal bridge, orbits, temples)")
     x = skin[stable]
-    T, d, matched = register_surface(x, scan_points, scan_tris)
+    T, d, matched = register_surface(x, scan_points, scan_tris,
+                                     vertex_normals(skin, skin_tris)[stable])
     overlap = float(matched.mean())
     if overlap < OVERLAP_MIN:
         raise MeshError(f"the scan does not overlap the face: {overlap:.0%} of the skin surgery "
