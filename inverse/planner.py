@@ -14,7 +14,10 @@ Eliminating dx = -K⁻¹ G dp = S dp and λ gives the reduced system with ``S_T 
 which is what we solve (Np is small); D is Levenberg-Marquardt damping. Box bounds are
 handled by freezing parameters at a bound whose gradient points outward and projecting trial
 points. An Armijo backtracking line search on T accepts the step; every trial is a forward
-solve warm-started from the first-order prediction.
+solve warm-started from the first-order prediction. The plan stops before a step whose
+predicted decrease is below ``ftol`` x T (the decrease it would stop after): Cranium's
+LeFort I at paper, at its best (T 1.059 mm², two parameters for two landmarks' six
+coordinates), spent 54 trials and 74 s failing to resolve such a step.
 """
 
 from __future__ import annotations
@@ -91,6 +94,14 @@ def reduced_step(S, weights3, r, p, tikhonov, mu, free):
     dp = np.zeros(len(p))
     dp[free] = np.linalg.solve(Hf, -g[free])
     return dp
+
+
+def predicted_decrease(S, weights3, r, p, tikhonov, dp) -> float:
+    """The decrease of T (mm²) the Gauss-Newton model predicts for the step dp (Np,):
+    -(g·dp + ½ dpᵀ (S_Tᵀ W S_T + αI) dp) (arguments as in `reduced_step`)."""
+    Sd = S @ dp
+    g = S.T @ (weights3 * r) + tikhonov * p
+    return -float(g @ dp + 0.5 * (Sd @ (weights3 * Sd) + tikhonov * dp @ dp))
 
 
 def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iterations: int = 20,
@@ -173,6 +184,10 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
             converged, reason, it = True, "projected gradient below gtol", it - 1
             break
         tighten(history[-1]["mean_distance_mm"])
+        dp = reduced_step(S, w3, r, p, objective.tikhonov, mu, free)
+        if predicted_decrease(S, w3, r, p, objective.tikhonov, dp) <= ftol * T:
+            converged, reason, it = True, "predicted decrease below ftol", it - 1
+            break
         base = eq.snapshot()
         accepted, newton = False, 0
         for _ in range(6):   # raise the damping until a step is accepted
