@@ -37,6 +37,15 @@ CTS = {
 }
 MOVE_MM = 5.0
 GOAL_S = 60.0
+#: Issue 30's goals at paper size (ratios in one run): a CT's forward solve (the 5 mm
+#: advance, glued and homogeneous: the synthetic heads' physics) over the synthetic
+#: `REFERENCE` head's (its mandible advanced as much, about the same vertex count), and a
+#: plan's work (its forward, sensitivity, adjoint and line-search solves) over one forward
+#: solve from rest of the same scene and model.
+GOAL_CT_RATIO, GOAL_PLAN_RATIO = 1.3, 3.0
+REFERENCE = ("class3", "mandible.advance_mm")
+#: The plan's solves, in plan.py's ``timings_s``.
+PLAN_WORK = ("forward", "adjoint", "sensitivity", "line_search")
 #: The tissue models, each simulated and planned: how the tissue holds to the teeth
 #: (`inverse.scene.CONTACTS`) and its material (`fem.material`).
 MODELS = [(c, m) for m in ("homogeneous", "tissues") for c in ("glued", "sliding")]
@@ -78,6 +87,16 @@ def ct(args) -> None:
     rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
     frames = {}   # CT -> its head frame's row
     shares = []   # [CT, resolution, skin, fat, lean tissue]
+    reference, plan_ratios = {}, {}   # resolution -> (vertices, solve s); CT -> worst ratio
+    ct_ratios = []
+    for res in args.resolutions.split(","):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+                       ORTHODIFF_CACHE=cache)
+            sim = _run("simulate.py", ["--case", REFERENCE[0], "--resolution", res, "--p",
+                                       f"{REFERENCE[1]}={MOVE_MM}"], env)
+        if "error" not in sim:
+            reference[res] = (sim["n_vertices"], sim["timings_s"]["solve"])
     for name in args.cts.split(","):
         ct_path, scene, param, shift, plan_params = CTS[name]
         if not ct_path.exists():
@@ -120,15 +139,33 @@ def ct(args) -> None:
                                             "--params-used", plan_params],
                                 env) if goal_lms else {"error": "none"}
                     fwd = "failed" if "error" in sim else \
-                        f"{sim['timings_s']['total']:.1f} ({sim['newton_iterations']})"
+                        f"{sim['timings_s']['solve']:.1f} ({sim['newton_iterations']})"
                     pl = plan.get("error", "")[:40] if "error" in plan else (
                         f"{plan['mean_distance_before_mm']:.2f} → "
                         f"{plan['mean_distance_after_mm']:.2f} mm, "
                         f"{plan['timings_s']['total']:.1f} s")
+                    ratio = ""
+                    if "error" not in sim and "error" not in plan:
+                        r = sum(plan["timings_s"][k] for k in PLAN_WORK) \
+                            / sim["timings_s"]["solve"]
+                        ratio = f"{r:.1f} ({plan['forward_solves']})"
+                        if res == "paper":
+                            plan_ratios[name] = max(plan_ratios.get(name, 0.0), r)
+                    if res in reference and "error" not in sim and \
+                            (contact, material) == ("glued", "homogeneous"):
+                        ref_n, ref_s = reference[res]
+                        ct_ratios.append([name, res, rep["n_vertices"], ref_n,
+                                          f"{sim['timings_s']['solve']:.1f}", f"{ref_s:.1f}",
+                                          f"**{sim['timings_s']['solve'] / ref_s:.2f}**"])
+                        if res == "paper":
+                            goals.append(goal(f"CT forward / synthetic forward, {name}, paper "
+                                              "(ct)", sim["timings_s"]["solve"] / ref_s, "",
+                                              limit=GOAL_CT_RATIO, source="issue 30"))
                     rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
                                  f"{rep['min_quality']:.3f}",
                                  *(f"{v:.1f}" for v in stages[(name, res)].values()),
-                                 f"**{t['total']:.1f}**", contact, material, fwd, pl])
+                                 f"**{t['total']:.1f}**", contact, material, fwd, pl,
+                                 ratio])
                     if "error" not in sim:
                         for lm, rng, v in _ratios(sim, param):
                             ok = rng is None or rng[0] <= v <= rng[1]
@@ -142,7 +179,9 @@ def ct(args) -> None:
         f"goal: a paper-size scene in ≤ {GOAL_S:g} s), then `scripts/simulate.py --mesh` "
         f"with a {MOVE_MM:g} mm advance of the moved bone (headsq: both jaws in the CT's "
         "occlusion, `jaws.advance_mm`; Cranium: the LeFort I, `maxilla.advance_mm`; seconds "
-        "and iterations), then `scripts/plan.py --mesh` to the CT's goal, each with the tissue "
+        "and iterations of the solve), then `scripts/plan.py --mesh` to the CT's goal (the "
+        "whole run; plan / forward: its solves' time over the 5 mm advance's, and its "
+        "forward solves), each with the tissue "
         "glued to the teeth and sliding on them (`--contact`), and with the paper's "
         "homogeneous material and the tissues (`--material`: skin, fat and lean tissue per "
         "cell, `meshes.tissue`; their volume shares are in the last table) (headsq: Pg and Li "
@@ -150,8 +189,16 @@ def ct(args) -> None:
         "frame's).",
         ""]
     body += table(["CT", "resolution", "vertices", "tets", "min quality", *STAGES, "total",
-                   "contact", "material", "5 mm advance s (its)", "plan: mean distance, time"],
-                  rows)
+                   "contact", "material", "5 mm advance s (its)", "plan: mean distance, time",
+                   "plan / forward (solves)"], rows)
+    for name, r in plan_ratios.items():
+        goals.append(goal(f"plan / forward from rest, {name}, paper, worst model (ct)", r, "",
+                          limit=GOAL_PLAN_RATIO, source="issue 30"))
+    body += ["", f"The same run's synthetic reference: `simulate.py --case {REFERENCE[0]}` with "
+             f"`{REFERENCE[1]}={MOVE_MM:g}` (glued, homogeneous), against each CT's 5 mm "
+             "advance with the same physics; solve seconds (the equilibrium, not loading).", ""]
+    body += table(["CT", "resolution", "CT vertices", "synthetic vertices", "CT forward s",
+                   "synthetic forward s", "ratio"], ct_ratios)
     body += ["", "The head frame of each CT (`meshes.frame`, `ct.json`): its tilt from the "
              "scanner's axes (degrees, the treatment's convention: pitch > 0 the face turned "
              "up, roll > 0 the left side down, yaw > 0 the face turned to the patient's "
