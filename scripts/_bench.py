@@ -62,6 +62,15 @@ def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
         return json.loads(rep.read_text())
 
 
+#: A plan's solves in plan.py's ``timings_s``: issue 30's plan / forward ratio.
+PLAN_WORK = ("forward", "adjoint", "sensitivity", "line_search")
+
+
+def plan_work(report: dict) -> float:
+    """The seconds a plan.py report spent solving (`PLAN_WORK`)."""
+    return sum(report["timings_s"][k] for k in PLAN_WORK)
+
+
 #: BENCHMARKS.md's sections in the report's order (their markers) and the subcommand that
 #: writes each; ``bench.py all`` runs them all.
 SECTIONS = {"forward": "forward", "stress": "stress", "plan": "plan", "peers": "peers",

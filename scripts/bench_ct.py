@@ -44,8 +44,6 @@ GOAL_S = 60.0
 #: solve from rest of the same scene and model.
 GOAL_CT_RATIO, GOAL_PLAN_RATIO = 1.3, 3.0
 REFERENCE = ("class3", "mandible.advance_mm")
-#: The plan's solves, in plan.py's ``timings_s``.
-PLAN_WORK = ("forward", "adjoint", "sensitivity", "line_search")
 #: The tissue models, each simulated and planned: how the tissue holds to the teeth
 #: (`inverse.scene.CONTACTS`) and its material (`fem.material`).
 MODELS = [(c, m) for m in ("homogeneous", "tissues") for c in ("glued", "sliding")]
@@ -82,7 +80,7 @@ def _ratios(sim: dict, param: str) -> list:
 def ct(args) -> None:
     import numpy as np
 
-    from scripts._bench import goal, header, plot, table, write_section
+    from scripts._bench import goal, header, plan_work, plot, table, write_section
 
     rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
     frames = {}   # CT -> its head frame's row
@@ -146,8 +144,7 @@ def ct(args) -> None:
                         f"{plan['timings_s']['total']:.1f} s")
                     ratio = ""
                     if "error" not in sim and "error" not in plan:
-                        r = sum(plan["timings_s"][k] for k in PLAN_WORK) \
-                            / sim["timings_s"]["solve"]
+                        r = plan_work(plan) / sim["timings_s"]["solve"]
                         ratio = f"{r:.1f} ({plan['forward_solves']})"
                         if res == "paper":
                             plan_ratios[name] = max(plan_ratios.get(name, 0.0), r)

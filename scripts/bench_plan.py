@@ -7,7 +7,10 @@ from p = 0 with ``scripts/plan.py`` (default goal).
 from __future__ import annotations
 
 import itertools
+import json
 import sys
+import tempfile
+from pathlib import Path
 
 from scripts._bench import (
     CORRECTED,
@@ -15,6 +18,7 @@ from scripts._bench import (
     fd_gradient,
     goal,
     header,
+    plan_work,
     prediction_errors,
     ranks_label,
     series_plot,
@@ -25,6 +29,8 @@ from scripts._bench import (
 #: Goals (issue 4): a whole plan at paper size on 2 ranks (s), the adjoint gradient against
 #: one forward solve, and S_T against one forward solve.
 PLAN_GOAL_S, ADJOINT_GOAL, S_T_GOAL = 30.0, 0.3, 1.0
+#: Issue 30: a plan's solves in at most this many forward solves from rest (ratio, one run).
+PLAN_RATIO_GOAL = 3.0
 
 
 def _derivative_costs(res: str, mags) -> dict:
@@ -79,6 +85,20 @@ def _derivative_costs(res: str, mags) -> dict:
     rows = prediction_errors(scene, mags)
     out["predictions"] = rows
     return out
+
+
+def _plan_over_forward(report: dict, res: str, occ: str, n: int):
+    """The plan's solve time over one forward solve from rest to the parameters it found
+    (``simulate.py`` on n ranks), or None when that solve fails."""
+    with tempfile.TemporaryDirectory() as d:
+        params = Path(d) / "p.json"
+        params.write_text(json.dumps(dict(zip(report["param_names"], report["params"]))))
+        sim = simulate(res, "direct", n, args=[
+            "--case", "class3-asym", "--resolution", res, "--occlusion", occ,
+            "--params-used", ",".join(report["param_names"]), "--params", str(params)])
+    if "error" in sim:
+        return None
+    return plan_work(report) / sim["timings_s"]["solve"]
 
 
 def plan(args) -> None:
@@ -136,19 +156,28 @@ def plan(args) -> None:
     lines += pred_lines
     lines += ["", "### Whole plan from p = 0 (`scripts/plan.py`, default options)", "",
               "`--occlusion free`: `PLAN_PARAMS` (10); `final`: the six `jaws.*` motions with "
-              "the mandible held in the final occlusion (`make demo`).", "",
+              "the mandible held in the final occlusion (`make demo`). Plan / forward: the "
+              "plan's solves (forward, sensitivity, adjoint, line search) over one forward "
+              "solve from rest to the parameters it found (`simulate.py`, the same ranks, in "
+              "the same run).", "",
               "| resolution | occlusion | ranks | GN iterations | forward solves | mean distance "
               "before mm | after mm | forward s | sensitivity s | adjoint s | line search s | "
-              "total s |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "total s | plan / forward |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for res, occ in itertools.product(args.resolutions.split(","), args.occlusions.split(",")):
         for n in map(int, args.ranks.split(",")):
             r = simulate(res, "direct", n, script="plan.py",
                           args=["--case", "class3-asym", "--resolution", res, "--occlusion", occ])
             if "error" in r:
-                lines.append(f"| {res} | {occ} | {n} | failed: {r['error'][:60]} | | | | | | | | |")
+                lines.append(f"| {res} | {occ} | {n} | failed: {r['error'][:60]} | | | | | | | | "
+                             "| |")
             else:
                 t = r["timings_s"]
+                ratio = _plan_over_forward(r, res, occ, n)
+                if res == "paper" and n == 2 and ratio is not None:
+                    goals.append(goal(f"plan / forward from rest, --occlusion {occ}, paper, "
+                                      "2 ranks (plan)", ratio, "", limit=PLAN_RATIO_GOAL,
+                                      source="issue 30"))
                 totals.setdefault(f"--occlusion {occ}, {ranks_label(n)}", []).append(
                     (res, t["total"]))
                 if res == "paper" and n == 2:
@@ -159,7 +188,8 @@ def plan(args) -> None:
                     f"| {res} | {occ} | {n} | {r['gn_iterations']} | {r['forward_solves']} | "
                     f"{r['mean_distance_before_mm']:.2f} | {r['mean_distance_after_mm']:.2f} | "
                     f"{t['forward']:.1f} | {t['sensitivity']:.1f} | {t['adjoint']:.1f} | "
-                    f"{t['line_search']:.1f} | **{t['total']:.1f}** |")
+                    f"{t['line_search']:.1f} | **{t['total']:.1f}** | "
+                    + ("failed" if ratio is None else f"**{ratio:.1f}**") + " |")
             print(lines[-1], flush=True)
     png = series_plot("plan", totals, "resolution", "plan.py total s", logy=False,
                       goal_line=PLAN_GOAL_S)
