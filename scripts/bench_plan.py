@@ -92,7 +92,7 @@ def _plan_over_forward(report: dict, res: str, occ: str, n: int):
     (``simulate.py`` on n ranks), or None when that solve fails."""
     with tempfile.TemporaryDirectory() as d:
         params = Path(d) / "p.json"
-        params.write_text(json.dumps(dict(zip(report["param_names"], report["params"]))))
+        params.write_text(json.dumps(dict(zip(report["param_names"], report["params_optimal"]))))
         sim = simulate(res, "direct", n, args=[
             "--case", "class3-asym", "--resolution", res, "--occlusion", occ,
             "--params-used", ",".join(report["param_names"]), "--params", str(params)])
