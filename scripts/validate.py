@@ -43,6 +43,12 @@ from scripts._common import (  # noqa: E402
     warn_bounds,
 )
 
+#: The post-operative CT's skin is extracted within the scene's skin box widened by this
+#: (mm: more than the skin moves), and compared within the box of the rest and predicted
+#: skin widened by `CROP_MM` (the same face the scene holds, for the landmarks'
+#: constructions).
+SKIN_BOX_MM, CROP_MM = 20.0, 2.0
+
 
 def _check(args) -> bool:
     """Whether ``--post`` is a CT; `InputError` for options that do not go with it."""
@@ -114,13 +120,6 @@ def _ct_outcome(args, scene, skin, frame, landmarks, comm) -> dict:
     if isinstance(out, str):
         raise MeshError(out)
     return out
-
-
-#: The post-operative CT's skin is extracted within the scene's skin box widened by this
-#: (mm: more than the skin moves), and compared within the box of the rest and predicted
-#: skin widened by `CROP_MM` (the same face the scene holds, for the landmarks'
-#: constructions).
-SKIN_BOX_MM, CROP_MM = 20.0, 2.0
 
 
 def main(argv=None):
