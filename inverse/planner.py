@@ -96,11 +96,11 @@ def reduced_step(S, weights3, r, p, tikhonov, mu, free):
     return dp
 
 
-def predicted_decrease(S, weights3, r, p, tikhonov, dp) -> float:
+def predicted_decrease(S, weights3, g, tikhonov, dp) -> float:
     """The decrease of T (mm²) the Gauss-Newton model predicts for the step dp (Np,):
-    -(g·dp + ½ dpᵀ (S_Tᵀ W S_T + αI) dp) (arguments as in `reduced_step`)."""
+    -(g·dp + ½ dpᵀ (S_Tᵀ W S_T + αI) dp), g (Np,) the gradient of T (other arguments as in
+    `reduced_step`)."""
     Sd = S @ dp
-    g = S.T @ (weights3 * r) + tikhonov * p
     return -float(g @ dp + 0.5 * (Sd @ (weights3 * Sd) + tikhonov * dp @ dp))
 
 
@@ -185,13 +185,12 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
             break
         tighten(history[-1]["mean_distance_mm"])
         dp = reduced_step(S, w3, r, p, objective.tikhonov, mu, free)
-        if predicted_decrease(S, w3, r, p, objective.tikhonov, dp) <= ftol * T:
+        if predicted_decrease(S, w3, g, objective.tikhonov, dp) <= ftol * T:
             converged, reason, it = True, "predicted decrease below ftol", it - 1
             break
         base = eq.snapshot()
         accepted, newton = False, 0
         for _ in range(6):   # raise the damping until a step is accepted
-            dp = reduced_step(S, w3, r, p, objective.tikhonov, mu, free)
             dp *= min(1.0, max_step / max(np.max(np.abs(dp)), 1e-300))  # trust region
             alpha = 1.0
             for _ in range(max_backtracks + 1):
@@ -210,6 +209,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
                 break
             eq.restore(base)
             mu = max(10 * mu, 1e-6)
+            dp = reduced_step(S, w3, r, p, objective.tikhonov, mu, free)
         base[1].destroy()   # the snapshot's displacement vector
         if not accepted:
             reason = "line search failed: no decrease even with strong damping"

@@ -240,15 +240,11 @@ def bone_residual(pre: Volume, post: Volume, bone: BoneSurface, mask: np.ndarray
     ijk = np.argwhere(mask)
     x0 = pre.origin + ijk * pre.spacing
     x, _ = _iso_surface(pre, level, x0.min(axis=0), x0.max(axis=0))
-    near = np.clip(np.rint((x - pre.origin) / pre.spacing).astype(int), 0,
-                   np.array(pre.array.shape) - 1)
-    x = x[mask[near[:, 0], near[:, 1], near[:, 2]]]
+    x = x[dataclasses.replace(pre, array=mask).at(x)]
     x = x[::max(1, len(x) // RESIDUAL_POINTS)]
     moved = apply(T, x)
     seen = ndimage.binary_erosion(in_view(post), iterations=2, border_value=1)
-    k = np.clip(np.rint((moved - post.origin) / post.spacing).astype(int), 0,
-                np.array(post.array.shape) - 1)
-    moved = moved[seen[k[:, 0], k[:, 1], k[:, 2]]]   # off the edge of its view: unknown
+    moved = moved[dataclasses.replace(post, array=seen).at(moved)]   # off its view: unknown
     if len(moved) == 0:
         return float("inf")
     points, tris = _iso_surface(post, level, moved.min(axis=0) - 3.0, moved.max(axis=0) + 3.0)

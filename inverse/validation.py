@@ -136,9 +136,8 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
     if stable.sum() < 3:
         raise MeshError(f"no skin lies {STABLE_ABOVE_MM:g} mm above the moving bone to register "
                         "the scan on (forehead, nasal bridge, orbits, temples)")
-    x = skin[stable]
-    T, d, matched = register_surface(x, scan_points, scan_tris,
-                                     vertex_normals(skin, skin_tris)[stable])
+    x, n_x = skin[stable], vertex_normals(skin, skin_tris)[stable]
+    T, d, matched = register_surface(x, scan_points, scan_tris, n_x)
     overlap = float(matched.mean())
     if overlap < OVERLAP_MIN:
         raise MeshError(f"the scan does not overlap the face: {overlap:.0%} of the skin surgery "
@@ -150,7 +149,7 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
                         f"{residual:.2f} mm RMS (at most {RESIDUAL_MAX_MM:g}): a scan of "
                         "something else, or of another patient")
     _, q, tri = closest_points(apply(T, x[matched]), scan_points, scan_tris)
-    n_skin = vertex_normals(skin, skin_tris)[stable][matched] @ T[:3, :3].T
+    n_skin = n_x[matched] @ T[:3, :3].T
     facing = float(np.median(np.einsum("ij,ij->i", n_skin,
                                        normals_at(scan_points, scan_tris, tri, q))))
     if facing < FACING_MIN:

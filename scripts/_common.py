@@ -223,14 +223,15 @@ def warn_bounds(scene, p, comm) -> list[str]:
     return warnings
 
 
-def write_transforms(scene, out_dir, comm) -> None:
-    """One ITK transform file ``<segment>.tfm`` per segment into ``out_dir`` (3D Slicer)."""
+def write_transforms(transforms: dict, out_dir, comm) -> None:
+    """One ITK transform file ``<segment>.tfm`` per segment of ``transforms`` ({segment:
+    4×4}, e.g. `inverse.scene.Scene.transforms`) into ``out_dir`` (3D Slicer)."""
     from pathlib import Path
 
     from fem.io import write_text
     from meshes.transforms import itk_text
 
-    for seg, T in scene.transforms().items():
+    for seg, T in transforms.items():
         write_text(Path(out_dir) / f"{seg}.tfm", itk_text(T), comm)
 
 

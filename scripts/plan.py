@@ -128,7 +128,7 @@ def main(argv=None):
                                compile=scene.timings["compile"])
     if args.out:
         scene.write(args.out)
-        write_transforms(scene, args.out, comm)
+        write_transforms(scene.transforms(), args.out, comm)
     if args.picture:
         _picture(scene, targets, args.picture, comm)
     report["timings_s"]["total"] = time.perf_counter() - t0

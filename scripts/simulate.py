@@ -64,7 +64,7 @@ def main(argv=None):
                    solve=stats.total)
     if args.out:
         scene.write(args.out)
-        write_transforms(scene, args.out, comm)
+        write_transforms(scene.transforms(), args.out, comm)
     timings["total"] = time.perf_counter() - t0
     report = {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,

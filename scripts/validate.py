@@ -41,6 +41,7 @@ from scripts._common import (  # noqa: E402
     scene_from_args,
     scene_parser,
     warn_bounds,
+    write_transforms,
 )
 
 #: The post-operative CT's skin is extracted within the scene's skin box widened by this
@@ -233,12 +234,10 @@ def _crop(points, tris, lo, hi) -> tuple:
 def _write_measured(transforms: dict, out, comm) -> None:
     """The measured movements: ``transforms.json`` ({segment: 4×4}, the scene's frame, for
     ``--transforms``) and ``<segment>.tfm`` (ITK, 3D Slicer), each whole or not at all."""
-    from fem.io import write_json, write_text
-    from meshes.transforms import itk_text
+    from fem.io import write_json
 
     write_json(out / "transforms.json", {k: T.tolist() for k, T in transforms.items()}, comm)
-    for name, T in transforms.items():
-        write_text(out / f"{name}.tfm", itk_text(T), comm)
+    write_transforms(transforms, out, comm)
 
 
 if __name__ == "__main__":
