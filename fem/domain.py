@@ -36,7 +36,7 @@ class Domain:
         input_index: (n_local_nodes,) original vertex index of each dof block, -1 on edges.
         node_of_block: (n_local_nodes,) geometry node of each dof block, -1 on edges.
         segments, pivots, landmarks, name, n_vertices, n_cells, occlusion, head_frame,
-        contact, material, thresholds: as in `Anatomy`.
+        contact, material, thresholds, voxel_mm: as in `Anatomy`.
         tissues: (n_local_cells, 3) tissue fractions of the local cells (ghosts included,
             dolfinx's local order; `meshes.tissue.TISSUES`), or None.
     """
@@ -59,6 +59,7 @@ class Domain:
     material: str = "homogeneous"
     tissues: np.ndarray | None = None
     thresholds: dict | None = None
+    voxel_mm: np.ndarray | None = None
 
     @property
     def degree(self) -> int:
@@ -238,7 +239,7 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
                         n_vertices=anatomy.n_vertices, n_cells=anatomy.n_cells,
                         occlusion=anatomy.occlusion, head_frame=anatomy.head_frame,
                         contact=anatomy.contact, material=anatomy.material,
-                        thresholds=anatomy.thresholds)
+                        thresholds=anatomy.thresholds, voxel_mm=anatomy.voxel_mm)
             cells, x = anatomy.cells, anatomy.points
             facets, values = anatomy.facets, anatomy.facet_tags
         except Exception as e:  # re-raised on every rank below

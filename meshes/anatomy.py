@@ -80,6 +80,9 @@ class Anatomy:
         thresholds: a CT scene's segmentation, ``{"skin_hu": HU, "bone_hu": HU}`` (None
             for a label map's), which a post-operative CT of it is read with
             (`inverse.postop`); None for other scenes.
+        voxel_mm: (3,) the voxel size (mm) of the CT or label map the mesh was made from:
+            its surfaces follow the voxels' staircase (`meshes.landmarks.prominence_mm`);
+            None for a mesh not made from voxels.
     """
 
     points: np.ndarray
@@ -96,6 +99,7 @@ class Anatomy:
     tissues: np.ndarray | None = None
     material: str = "homogeneous"
     thresholds: dict | None = None
+    voxel_mm: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -165,6 +169,14 @@ class Anatomy:
         self._validate_tags()
         self._validate_landmarks()
         self._validate_tissues()
+        if self.voxel_mm is not None:
+            try:
+                v = np.asarray(self.voxel_mm, float)
+            except (TypeError, ValueError):
+                v = np.empty(0)
+            if v.shape != (3,) or not np.all(np.isfinite(v) & (v > 0)):
+                raise MeshError(f"voxel_mm must be 3 positive sizes (mm), got {self.voxel_mm!r}")
+            self.voxel_mm = v
         return self
 
     def _validate_tags(self):
@@ -240,6 +252,7 @@ class Anatomy:
                 "head_frame": None if self.head_frame is None else self.head_frame.report(),
                 "contact": self.contact, "material": self.material,
                 "thresholds": self.thresholds,
+                "voxel_mm": None if self.voxel_mm is None else np.asarray(self.voxel_mm).tolist(),
                 "pivots": {k: np.asarray(v).tolist() for k, v in self.pivots.items()},
                 "landmarks": {k: [np.asarray(v.facet).tolist(), np.asarray(v.weights).tolist()]
                               for k, v in self.landmarks.items()}}
@@ -270,7 +283,8 @@ class Anatomy:
                            contact=meta.get("contact", "sliding"),
                            tissues=d["tissues"] if "tissues" in d else None,
                            material=meta.get("material", "homogeneous"),
-                           thresholds=meta.get("thresholds"))
+                           thresholds=meta.get("thresholds"),
+                           voxel_mm=meta.get("voxel_mm"))
         except (OSError, KeyError, ValueError) as e:
             raise MeshError(f"cannot read anatomy file {path}: {e}") from e
 

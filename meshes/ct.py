@@ -55,7 +55,7 @@ from meshes.anatomy import (
 from meshes.errors import MeshError
 from meshes.frame import estimate as estimate_frame
 from meshes.frame import from_spec
-from meshes.landmarks import skin_landmarks
+from meshes.landmarks import prominence_mm, skin_landmarks
 from meshes.osteotomy import Osteotomies, Plane, resolve_plane_files
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import ct_teeth, tag_teeth
@@ -330,14 +330,16 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     anatomy = Anatomy(points, cells, facets[keep], tags[keep], segments, {}, {},
                       name=f"{Path(ct_path).name}/{resolution}", head_frame=frame,
                       thresholds=None if is_map else {
-                          "skin_hu": float(spec.get("skin_hu", seg.SKIN_HU)), "bone_hu": bone_hu})
+                          "skin_hu": float(spec.get("skin_hu", seg.SKIN_HU)), "bone_hu": bone_hu},
+                      voxel_mm=volume.spacing.copy())
     anatomy.validate()
     timings["classify"] = time.perf_counter() - t
     t = time.perf_counter()
     skin = anatomy.facets[anatomy.facet_tags == SKIN]
     rest = tags != SKIN   # the whole boundary but the skin: bone, free and crop faces
     anatomy.landmarks = skin_landmarks(frame.to_head(anatomy.points), skin, HEAD_MIDSAGITTAL,
-                                       (facets[rest], ~np.isin(tags[rest], (0, RIM))))
+                                       (facets[rest], ~np.isin(tags[rest], (0, RIM))),
+                                       prominence_mm(volume.spacing, frame))
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     t = time.perf_counter()

@@ -26,6 +26,8 @@ Two paths, both ending in a validated `Anatomy`:
                                                  # "head_tilt_deg" (written, not read)
         "ct_thresholds": {"skin_hu": -400, "bone_hu": 226},  # optional: a CT scene's
                                                  # segmentation (`inverse.postop`)
+        "ct_voxel_mm": [0.96, 0.96, 1.5],        # optional: the voxels the mesh was made
+                                                 # from (`meshes.landmarks.prominence_mm`)
         "landmarks": {"Pg": [0, 101.7, -66], "Li": {"facet": [i, j, k], "weights": [a, b, c]}}}
 
    A landmark given as a point is projected onto the nearest skin facet; it must lie within
@@ -196,7 +198,8 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
                       contact=spec.get("contact", "sliding"),
                       tissues=_tissues(mesh, spec.get("tissue_data"), path),
                       material=spec.get("material", "homogeneous"),
-                      thresholds=spec.get("ct_thresholds"))
+                      thresholds=spec.get("ct_thresholds"),
+                      voxel_mm=spec.get("ct_voxel_mm"))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
     return anatomy.validate()
@@ -322,5 +325,7 @@ def write_tet_mesh(anatomy: Anatomy, path) -> list:
         spec.update(anatomy.head_frame.report())
     if anatomy.thresholds is not None:
         spec["ct_thresholds"] = anatomy.thresholds
+    if anatomy.voxel_mm is not None:
+        spec["ct_voxel_mm"] = np.asarray(anatomy.voxel_mm).tolist()
     sidecar.write_text(json.dumps(spec, indent=1) + "\n")
     return [path, sidecar]

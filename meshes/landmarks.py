@@ -20,7 +20,9 @@ thin skin the mesh loses), the profile goes on across it; where it meets a crop 
 nothing, the profile has a gap.
 
 A bulge or a hollow counts where it stands out by `PROMINENCE_MM` (the synthetic heads'
-stomion is 0.9 mm deep once voxelised); a flat one is marked at the middle of its part within
+stomion is 0.9 mm deep once voxelised), or on a mesh of a CT's voxels by half a voxel along
+the profile's forward axis where that is more (`prominence_mm`: the voxels' staircase); a
+flat one is marked at the middle of its part within
 `PLATEAU_MM` of its extreme. A landmark whose feature the
 scan does not hold (a field of view that ends at the lip) is absent, not guessed: the chains
 of bulges do not cross a gap in the profile longer than `GAP_MM`, and no bulge or hollow is
@@ -63,6 +65,12 @@ from meshes.osteotomy import Plane
 
 PROFILE_STEP_MM = 0.5
 PROMINENCE_MM = 0.5
+#: A mesh of a CT's segmentation follows its voxels' staircase, in bumps of up to half a voxel
+#: across the surface. The synthetic head in 2 mm voxels, pitched 8 degrees, meshed at paper:
+#: a 0.6 mm bump under the nose passed PROMINENCE_MM, was taken for Ls, and put Li and Pg on
+#: Ls and Li (Sn lost). Half a voxel (1 mm) drops it; headsq (3.2 mm: 1.6 mm) and Cranium
+#: (0.96 mm) keep every landmark where it was, at coarse and paper.
+STAIRCASE = 0.5
 GAP_MM = 4.0
 PLATEAU_MM = 0.25
 MENTON_BACK_MM = 20.0
@@ -96,19 +104,31 @@ def _crossing(points, tris, plane):
     return np.flatnonzero((d.min(axis=1) <= 0) & (d.max(axis=1) >= 0))
 
 
-def _extrema(s, sign: float):
-    """Indices of the local maxima of sign * s that stand out by `PROMINENCE_MM`."""
+def prominence_mm(voxel_mm=None, frame=None) -> float:
+    """How far (mm) a bulge or hollow of the profile must stand out on a mesh made from
+    voxels of ``voxel_mm`` (3,) mm (None: not from voxels), its head frame ``frame``
+    (`meshes.frame.HeadFrame`, None: the identity): `PROMINENCE_MM`, or `STAIRCASE` of a voxel
+    along the head's forward axis where that is more."""
+    if voxel_mm is None:
+        return PROMINENCE_MM
+    forward = np.array([0.0, 1.0, 0.0]) if frame is None else frame.rotation[:, 1]
+    return max(PROMINENCE_MM, STAIRCASE * float(np.linalg.norm(np.asarray(voxel_mm) * forward)))
+
+
+def _extrema(s, sign: float, prominence: float):
+    """Indices of the local maxima of sign * s that stand out by ``prominence`` mm."""
     from scipy.signal import find_peaks
 
-    return find_peaks(sign * s, prominence=PROMINENCE_MM)[0]
+    return find_peaks(sign * s, prominence=prominence)[0]
 
 
 def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
-                      surface=None) -> dict:
+                      surface=None, prominence: float = PROMINENCE_MM) -> dict:
     """Landmarks {name: `Landmark`} on the skin facets ``skin`` (S, 3) over ``points`` (N, 3),
     built on the profile in ``plane`` (module docstring). ``surface``: (facets (B, 3), is_bone
     (B,)) the rest of the boundary; a ray that misses the skin and meets bone first bridges
-    the profile (a free crop face or a held one in front of it does not)."""
+    the profile (a free crop face or a held one in front of it does not). ``prominence``:
+    how far (mm) a bulge or hollow stands out (`prominence_mm`)."""
     o, a, u = _plane_axes(plane)
     tris = skin[_crossing(points, skin, plane)]
     other, is_bone = (np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=bool)) \
@@ -150,7 +170,7 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     for r in np.unique(run):
         idx = np.flatnonzero(run == r)
         for marks, sign in ((peaks, 1.0), (hollows, -1.0)):
-            found_r = _extrema(s[idx], sign)
+            found_r = _extrema(s[idx], sign, prominence)
             marks += list(idx[found_r[(found_r >= edge) & (found_r < len(idx) - edge)]])
     found = {}
 
@@ -190,11 +210,12 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     return out
 
 
-def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane, surface=None) -> dict:
-    """Every landmark the scan holds {name: `Landmark`}: the profile's (``surface``: as in
-    `profile_landmarks`), and tragion searched above the lowest of Li, Pg and Me that the
-    profile found (module docstring)."""
-    found = profile_landmarks(points, skin, plane, surface)
+def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane, surface=None,
+                   prominence: float = PROMINENCE_MM) -> dict:
+    """Every landmark the scan holds {name: `Landmark`}: the profile's (``surface`` and
+    ``prominence``: as in `profile_landmarks`), and tragion searched above the lowest of Li,
+    Pg and Me that the profile found (module docstring)."""
+    found = profile_landmarks(points, skin, plane, surface, prominence)
     _, _, u = _plane_axes(plane)
     floor = max(((found[k].position(points) - plane.point) @ u for k in ("Li", "Pg", "Me")
                  if k in found), default=-np.inf)

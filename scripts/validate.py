@@ -141,6 +141,7 @@ def main(argv=None):
 
     from fem.io import write_json, write_on_root
     from inverse import validation
+    from meshes.landmarks import prominence_mm
     from meshes.surface import apply, read_surface, write_surface
 
     t0 = time.perf_counter()
@@ -178,7 +179,8 @@ def main(argv=None):
     if is_ct:   # the face the scene holds
         both = np.vstack([rest, after])
         scan = _crop(*scan, both.min(axis=0) - CROP_MM, both.max(axis=0) + CROP_MM)
-    part, d, covered = validation.compare(after, rest, tris, frame, landmarks_rest, *scan)
+    part, d, covered = validation.compare(after, rest, tris, frame, landmarks_rest, *scan,
+                                          prominence_mm(scene.domain.voxel_mm, frame))
     timings["comparison"] = time.perf_counter() - t
     out = Path(args.out)
     report = {"case": scene.case or scene.domain.name, "mesh": args.mesh,

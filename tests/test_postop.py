@@ -250,15 +250,28 @@ def test_a_scene_without_ct_thresholds_refuses_a_post_ct(tmp_path, synthetic):
     assert not out.exists()
 
 
-def test_scene_sidecar_keeps_the_ct_thresholds(synthetic):
-    """ct_scene.py writes the segmentation's thresholds into the sidecar, and load_tet_mesh
-    reads them back (the post-operative CT's skin is extracted at the same one)."""
+def test_scene_sidecar_keeps_the_ct_thresholds_and_voxels(synthetic, tmp_path):
+    """ct_scene.py writes the segmentation's thresholds and the CT's voxel size into the
+    sidecar, and load_tet_mesh reads them back (the post-operative CT's skin is extracted at
+    the same threshold; the landmarks are built with the same prominence); a voxel size that
+    is not 3 positive numbers is a one-line error."""
+    from meshes.errors import MeshError
     from meshes.external import load_tet_mesh
     from meshes.segment import BONE_HU, SKIN_HU
+    from meshes.volume import read_volume
 
     sidecar = json.loads((synthetic["mesh"].parent / "scene.vtu.json").read_text())
     assert sidecar["ct_thresholds"] == {"skin_hu": SKIN_HU, "bone_hu": BONE_HU}
-    assert load_tet_mesh(synthetic["mesh"]).thresholds == sidecar["ct_thresholds"]
+    assert sidecar["ct_voxel_mm"] == read_volume(synthetic["pre"]).spacing.tolist()
+    anatomy = load_tet_mesh(synthetic["mesh"])
+    assert anatomy.thresholds == sidecar["ct_thresholds"]
+    assert anatomy.voxel_mm.tolist() == sidecar["ct_voxel_mm"]
+    for bad in ([1.0, 1.0], [1.0, 0.0, 1.0], "x"):
+        mesh = tmp_path / "scene.vtu"
+        mesh.write_bytes(synthetic["mesh"].read_bytes())
+        (tmp_path / "scene.vtu.json").write_text(json.dumps({**sidecar, "ct_voxel_mm": bad}))
+        with pytest.raises(MeshError, match="voxel_mm must be 3 positive"):
+            load_tet_mesh(mesh)
 
 
 if __name__ == "__main__":
