@@ -137,6 +137,7 @@ class Factorisation:
         pc = ksp.getPC()
         pc.setType(PETSc.PC.Type.PYTHON)
         pc.setPythonContext(_ApplyOther(self.ksp.getPC()))
+        self.K.setNearNullSpace(self.A.getNearNullSpace())   # for a PC of its own (GAMG)
         ksp.setFromOptions()
         return ksp
 

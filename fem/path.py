@@ -24,7 +24,8 @@ class PathFollowing:
     def tangent_step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
         """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
         tangent solve; with no factorisation yet, one is made at the equilibrium, and a
-        Cholesky factor of K there is applied once (no K assembled, no CG). ``rhs``: the
+        Cholesky factor of K there is applied once (no K assembled, no CG); not so with the
+        tangent's own preconditioner (`own_tangent_pc`). ``rhs``: the
         load to respond to instead of -df/dp dp (e.g. `_goal_load`; consumed)."""
         dp = np.asarray(dp, dtype=float)
         out = self.u_eq.duplicate()
@@ -33,10 +34,11 @@ class PathFollowing:
             out.maxpy(dp, self._sens)
             return out
         rhs = self._load(-dp) if rhs is None else rhs
-        if not self._pc_ready:
+        own = self.own_tangent_pc
+        if not self._pc_ready and not own:
             self._factorise_at_equilibrium()
         pc = self.ksp.getPC()
-        if self._pc_at_eq and pc.getType() == "cholesky":
+        if not own and self._pc_at_eq and pc.getType() == "cholesky":
             pc.apply(rhs, out)
         else:
             self.solve_tangent(rhs, out)

@@ -26,12 +26,14 @@ class TangentSolves:
         iterations with it, when the last forward solve did (quasi-Newton from a
         factorisation far from here: at medium size CG then took 63 iterations, 3x a
         factorisation; ``solve(tangent=True)`` avoids that), or when CG fails; it then also
-        serves the next solves as quasi-Newton's start. Returns the CG iteration count."""
+        serves the next solves as quasi-Newton's start. With a preconditioner of its own
+        (`own_tangent_pc`) nothing is factorised. Returns the CG iteration count."""
         self._assemble_K()
         ksp = self.tangent_ksp
         far = not self._pc_at_eq and self._last_its > self.policy.tangent_lag_its
+        own = self.own_tangent_pc
         for attempt in range(2):
-            if attempt or not self._pc_ready or self._stale_pc or far:
+            if not own and (attempt or not self._pc_ready or self._stale_pc or far):
                 self._factorise_at_equilibrium()
             ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
             ksp.solve(rhs, out)
@@ -59,7 +61,7 @@ class TangentSolves:
         Cholesky preset, no block solve in its package, or K is not positive definite
         there)."""
         pc = self.ksp.getPC()
-        if pc.getType() != "cholesky" or self.n_params == 0:
+        if pc.getType() != "cholesky" or self.n_params == 0 or self.own_tangent_pc:
             return None
         if not self._pc_at_eq:
             self._factorise_at_equilibrium()
@@ -84,6 +86,14 @@ class TangentSolves:
             for m in (rhs, sol):
                 m.destroy()
         return out
+
+    @property
+    def own_tangent_pc(self) -> bool:
+        """The tangent solves have a preconditioner of their own, chosen by PETSc options
+        under ``<prefix>tangent_`` (e.g. ``-orthodiff_fwd_tangent_pc_type gamg``: CG with
+        algebraic multigrid on K, the rigid-body near-nullspace; docs/solver.md), instead of
+        the kept factorisation."""
+        return self.tangent_ksp.getPC().getType() != PETSc.PC.Type.PYTHON
 
     @property
     def has_sensitivity(self) -> bool:

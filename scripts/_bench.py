@@ -62,6 +62,26 @@ def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
         return json.loads(rep.read_text())
 
 
+def worker(path, n: int, *args) -> dict:
+    """Run the benchmark module ``path`` as a worker under ``mpirun -n n`` with ``args``:
+    the JSON its rank 0 printed after ``RESULT`` (`result`), or {"error": its last stderr
+    line}."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    r = subprocess.run([*mpirun(n), sys.executable, str(path), *map(str, args)],
+                       capture_output=True, text=True, encoding="utf-8", errors="replace",
+                       env=env)
+    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")), None)
+    if line is None:
+        return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1][:80]}
+    return json.loads(line[7:])
+
+
+def result(out: dict, comm) -> None:
+    """A worker's answer, printed by rank 0 for `worker`."""
+    if comm.rank == 0:
+        print("RESULT " + json.dumps(out), flush=True)
+
+
 #: A plan's solves in plan.py's ``timings_s``: issue 30's plan / forward ratio.
 PLAN_WORK = ("forward", "adjoint", "sensitivity", "line_search")
 

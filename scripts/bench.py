@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Benchmarks (not timed tests). Results are printed and written into BENCHMARKS.md.
 
-    python3 scripts/bench.py forward [--resolutions tiny,coarse,medium,paper]
+    python3 scripts/bench.py forward [--resolutions tiny,coarse,medium,paper,fine]
                                      [--solvers direct,cholmod] [--ranks 1,2]
+                                     [--all-up-to paper]
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
@@ -89,6 +90,7 @@ def check_args(args) -> None:
     lists = {"resolutions": RESOLUTIONS, "resolutions_tol": RESOLUTIONS,
              "resolutions_pred": RESOLUTIONS, "resolutions_p1": RESOLUTIONS,
              "resolutions_p2": RESOLUTIONS, "iterative_up_to": RESOLUTIONS,
+             "all_up_to": RESOLUTIONS,
              "resolution_grad": RESOLUTIONS, "resolution": RESOLUTIONS, "solvers": PRESETS,
              "methods": METHODS,
              "methods_tol": METHODS, "occlusions": ("free", "final"), "cts": CTS,
@@ -132,11 +134,13 @@ def main():
     ap = _Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="what", required=True, parser_class=_Parser)
     f = sub.add_parser("forward", help="forward equilibrium across resolutions and solvers")
-    f.add_argument("--resolutions", default="tiny,coarse,medium,paper")
+    f.add_argument("--resolutions", default="tiny,coarse,medium,paper,fine")
     f.add_argument("--solvers", default="direct,cholmod",
                    help="presets (gamg: ~100x slower at paper, see docs/decisions.md)")
     f.add_argument("--ranks", default="1,2")
     f.add_argument("--methods", default="qn,newton")
+    f.add_argument("--all-up-to", default="paper",
+                   help="resolutions beyond it run the default solver and method only")
     f.add_argument("--iterative-up-to", default="paper",
                    help="largest resolution for the GAMG preset")
     pl = sub.add_parser("plan", help="derivatives, exploration and whole plans")

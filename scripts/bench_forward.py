@@ -6,20 +6,27 @@ from __future__ import annotations
 
 import itertools
 import sys
+import time
+from pathlib import Path
 
-from scripts._bench import (
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from scripts._bench import (  # noqa: E402
     ROOT,
     goal,
     header,
     ranks_label,
+    result,
     series_plot,
     simulate,
     table,
+    worker,
     write_section,
 )
 
 #: The forward goal (s): paper size, class3, 5 mm advance from rest, 2 ranks.
 FORWARD_GOAL_S = 5.0
+#: The tangent study's preconditioners: the kept factorisation (the default), GAMG.
+TANGENT_PCS = ("factorisation", "gamg")
 
 
 def forward(args) -> None:
@@ -31,6 +38,7 @@ def forward(args) -> None:
             "peak RSS MiB", "goal err mm"]
     levels = args.resolutions.split(",")
     last_iter = levels.index(args.iterative_up_to) if args.iterative_up_to in levels else -1
+    last_all = levels.index(args.all_up_to) if args.all_up_to in levels else len(levels)
     for i, res in enumerate(levels):
         for solver in args.solvers.split(","):
             if solver == "gamg" and i > last_iter:
@@ -39,6 +47,8 @@ def forward(args) -> None:
                                                args.methods.split(",")):
                 if solver == "cholmod" and n > 1:
                     continue   # PETSc's CHOLMOD is sequential
+                if i > last_all and (solver, method) != ("direct", "qn"):
+                    continue   # beyond --all-up-to: the default solver only
                 r = simulate(res, solver, n, extra=["--method", method])
                 if "error" in r:
                     rows.append([res, "", "", n, solver, method, f"failed: {r['error'][:60]}"]
@@ -67,12 +77,73 @@ def forward(args) -> None:
         "regularisations; peak RSS is summed over ranks. CHOLMOD is sequential in PETSc; "
         "like MUMPS it shifts K until it is positive definite (a failed Cholesky). "
         + (f"GAMG is run up to `{args.iterative_up_to}`." if "gamg" in args.solvers else
-           "GAMG is left out (`--solvers gamg`; docs/decisions.md)."), "",
+           "GAMG is left out (`--solvers gamg`; docs/decisions.md).")
+        + f" Beyond `{args.all_up_to}` only the default (direct, qn) runs.", "",
         *table(head, rows)]
     png = series_plot("forward", times, "dofs", "equilibrium s", logx=True,
                       goal_line=FORWARD_GOAL_S)
-    body += ["", f"![forward]({png})"]
+    body += ["", f"![forward]({png})", "", *_tangent_table(levels, args.ranks)]
     write_section("forward", "\n".join(body), goals)
+
+
+def _tangent_table(levels, ranks: str) -> list:
+    """The tangent solve at the 5 mm advance's equilibrium with each of `TANGENT_PCS`, a
+    worker process each: its markdown."""
+    from fem.policy import TANGENT_GAMG
+
+    head = ["resolution", "dofs", "ranks", "preconditioner", "first solve s (CG its)",
+            "next solve s (CG its)", "peak RSS MiB"]
+    rows = []
+    for res, n, pc in itertools.product(levels, map(int, ranks.split(",")), TANGENT_PCS):
+        r = worker(__file__, n, res, pc)
+        rows.append([res, r.get("dofs", ""), n, pc] + (
+            [r["error"], "", ""] if "error" in r else
+            [f"**{r['first_s']:.2f}** ({r['first_its']})",
+             f"{r['next_s']:.2f} ({r['next_its']})", f"{r['peak_rss_mb']:.0f}"]))
+        print(rows[-1], flush=True)
+    opts = " ".join(f"-orthodiff_fwd_tangent_{k} {v}" for k, v in TANGENT_GAMG.items())
+    return ["### The tangent at the equilibrium: a preconditioner that scales", "",
+            "K⁻¹ df/dp for `mandible.advance_mm` at the 5 mm advance's equilibrium "
+            "(`Equilibrium.solve_tangent`, CG to a relative residual of 1e-11), one worker "
+            "process each (`scripts/bench_forward.py`). `factorisation`: the kept MUMPS "
+            "LDLᵀ, refactorised at the equilibrium by the first solve (quasi-Newton came from "
+            "rest); `gamg`: CG with smoothed-aggregation AMG and the rigid-body "
+            f"near-nullspace, switched on by `{opts}`; its first solve builds the hierarchy. "
+            "The next solve has another right-hand side (df/dp scaled) on the same K.", "",
+            *table(head, rows)]
+
+
+def tangent_work(res: str, pc: str) -> None:
+    """One worker (under mpirun): the tangent study's row at ``res`` with ``pc``."""
+    import petsc4py
+
+    petsc4py.init([sys.argv[0]])
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from fem.policy import TANGENT_GAMG
+    from inverse.scene import Scene
+    from scripts._common import peak_rss_mb
+
+    comm = MPI.COMM_WORLD
+    if pc == "gamg":
+        opts = PETSc.Options()
+        for k, v in TANGENT_GAMG.items():
+            opts[f"orthodiff_fwd_tangent_{k}"] = v
+    scene = Scene.from_case("class3", res, params_used=["mandible.advance_mm"], comm=comm)
+    scene.solve({"mandible.advance_mm": 5.0})
+    eq = scene.eq
+    assert eq.own_tangent_pc == (pc == "gamg")
+    rhs, out = eq.dfdp[0].copy(), eq.dfdp[0].duplicate()
+    out_rows = {"dofs": 3 * scene.domain.n_vertices}
+    for name, scale in (("first", -1.0), ("next", -2.0)):
+        rhs.array[:] = scale * eq.dfdp[0].array_r
+        comm.Barrier()
+        t = time.perf_counter()
+        out_rows[f"{name}_its"] = eq.solve_tangent(rhs, out)
+        out_rows[f"{name}_s"] = comm.allreduce(time.perf_counter() - t, op=MPI.MAX)
+    out_rows["peak_rss_mb"] = peak_rss_mb(comm)
+    result(out_rows, comm)
 
 
 def stress(args) -> None:
@@ -108,3 +179,7 @@ def stress(args) -> None:
         *table(head, rows)]
     png = series_plot("stress", times, "mandible advance m, mm (lateral 0.3 m)", "equilibrium s")
     write_section("stress", "\n".join(body + ["", f"![stress]({png})"]))
+
+
+if __name__ == "__main__":
+    tangent_work(*sys.argv[1:3])

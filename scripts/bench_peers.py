@@ -17,7 +17,6 @@ worker) measures, on the same scene, treatment and goal:
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -166,35 +165,33 @@ def work(res: str) -> None:
     petsc4py.init([sys.argv[0]])
     from mpi4py import MPI
 
+    from scripts._bench import result
+
     comm = MPI.COMM_WORLD
-    out = {"forward": _forward(res, comm), "gradient": _gradient(res, comm),
-           "planning": _planning(res, comm)}
-    if comm.rank == 0:
-        print("RESULT " + json.dumps(out), flush=True)
+    result({"forward": _forward(res, comm), "gradient": _gradient(res, comm),
+            "planning": _planning(res, comm)}, comm)
 
 
 def peers(args) -> None:
-    import os
-    import subprocess
-
-    from scripts._bench import goal, header, ranks_label, series_plot, table, write_section
-    from scripts._launch import mpirun
+    from scripts._bench import (
+        goal,
+        header,
+        ranks_label,
+        series_plot,
+        table,
+        worker,
+        write_section,
+    )
 
     rows = {"forward": [], "gradient": [], "planning": []}
     speedups, goals = {}, []   # speedups: label -> [(resolution, peer s / orthodiff s)]
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     for res in args.resolutions.split(","):
         for n in (int(r) for r in args.ranks.split(",")):
-            r = subprocess.run([*mpirun(n), sys.executable, __file__, res],
-                               capture_output=True, text=True, encoding="utf-8",
-                               errors="replace", env=env)
-            line = next((ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")), None)
-            if line is None:
-                why = (r.stderr.strip().splitlines() or ["failed"])[-1][:80]
+            m = worker(__file__, n, res)
+            if "error" in m:
                 for k in rows:
-                    rows[k].append([res, n, why])
+                    rows[k].append([res, n, m["error"]])
                 continue
-            m = json.loads(line[7:])
             f, g, p = m["forward"], m["gradient"], m["planning"]
             rows["forward"].append([res, n, f"**{f['ours_s']:.2f}** ({f['ours_its']})",
                                     f"{f['peer_s']:.2f} ({f['peer_its']})",

@@ -184,6 +184,38 @@ def test_plan_same_on_1_and_2_ranks(tmp_path, model):
                                rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.mpi
+def test_plan_with_the_tangents_own_preconditioner(tmp_path):
+    """Targets from simulate.py at a known p*; plan.py with the tangent solves on GAMG
+    (`fem.policy.TANGENT_GAMG` on the command line, 2 ranks) recovers p* and plans what the
+    kept factorisation plans (1 rank) within 0.01 mm and 0.01 degrees."""
+    from fem.policy import TANGENT_GAMG
+
+    used = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
+    sim = tmp_path / "sim.json"
+    r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
+                        used, "--p", "mandible.advance_mm=-3", "mandible.lateral_mm=-1.5",
+                        "mandible.yaw_deg=-2", "maxilla_L.advance_mm=1.5", "--report",
+                        str(sim)])
+    assert r.returncode == 0, r.stderr[-2000:]
+    targets = tmp_path / "t.json"
+    targets.write_text(json.dumps(json.loads(sim.read_text())["landmarks"]))
+    gamg = [a for k, v in TANGENT_GAMG.items() for a in (f"-orthodiff_fwd_tangent_{k}", str(v))]
+    reports = {}
+    for n, extra in ((1, []), (2, gamg)):
+        rep = tmp_path / f"r{n}.json"
+        r = _run(_mpirun(n) + PLAN + ["--targets", str(targets), "--landmarks", "Pg,Li,Ls",
+                                      "--params-used", used, "--tikhonov", "0", "--ftol",
+                                      "1e-10", "--report", str(rep), *extra])
+        assert r.returncode == 0, r.stderr[-2000:]
+        reports[n] = json.loads(rep.read_text())
+    for rep in reports.values():
+        assert rep["converged"] and rep["mean_distance_after_mm"] < 0.01
+    np.testing.assert_allclose(reports[2]["params_optimal"], [-3, -1.5, -2, 1.5], rtol=1e-3)
+    np.testing.assert_allclose(reports[2]["params_optimal"], reports[1]["params_optimal"],
+                               atol=0.01)
+
+
 def test_plan_checkpoint_and_resume(tmp_path):
     """A plan cut after 2 iterations and resumed from its checkpoint ends where the same
     plan run at once ends, with one continuous history; a checkpoint of another plan is
