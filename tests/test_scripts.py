@@ -153,33 +153,43 @@ def test_plan_default_goal_report(tmp_path):
     assert rep["mean_distance_after_mm"] < 0.5 * rep["mean_distance_before_mm"]
 
 
+#: The parameters of the recovery tests and their known values p*.
+RECOVER_USED = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
+RECOVER_P = [-3, -1.5, -2, 1.5]
+
+
+def _recover(tmp_path, model, runs) -> dict:
+    """Targets from simulate.py at p* (`RECOVER_P`) with ``model`` (options); plan.py to them
+    for each (ranks, extra options) of ``runs``: {ranks: report}, each converged to p*."""
+    sim = tmp_path / "sim.json"
+    r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
+                        RECOVER_USED, "--p"]
+             + [f"{k}={v}" for k, v in zip(RECOVER_USED.split(","), RECOVER_P)]
+             + ["--report", str(sim), *model])
+    assert r.returncode == 0, r.stderr[-2000:]
+    targets = tmp_path / "t.json"
+    targets.write_text(json.dumps(json.loads(sim.read_text())["landmarks"]))
+    reports = {}
+    for n, extra in runs:
+        rep = tmp_path / f"r{n}.json"
+        r = _run(_mpirun(n) + PLAN + ["--targets", str(targets), "--landmarks", "Pg,Li,Ls",
+                                      "--params-used", RECOVER_USED, "--tikhonov", "0",
+                                      "--ftol", "1e-10", "--report", str(rep), *model, *extra])
+        assert r.returncode == 0, r.stderr[-2000:]
+        reports[n] = json.loads(rep.read_text())
+        assert reports[n]["n_ranks"] == n
+        assert reports[n]["converged"] and reports[n]["mean_distance_after_mm"] < 0.01
+        np.testing.assert_allclose(reports[n]["params_optimal"], RECOVER_P, rtol=1e-3)
+    return reports
+
+
 @pytest.mark.mpi
 @pytest.mark.parametrize("model", [[], ["--contact", "sliding", "--material", "tissues"]],
                          ids=["default", "sliding-tissues"])
 def test_plan_same_on_1_and_2_ranks(tmp_path, model):
     """Targets from simulate.py at a known p*; plan.py recovers p* on 1 and 2 ranks, the
     same; with the default model and with the lips sliding on tissues' materials."""
-    used = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
-    sim = tmp_path / "sim.json"
-    r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
-                        used, "--p", "mandible.advance_mm=-3", "mandible.lateral_mm=-1.5",
-                        "mandible.yaw_deg=-2", "maxilla_L.advance_mm=1.5", "--report",
-                        str(sim), *model])
-    assert r.returncode == 0, r.stderr[-2000:]
-    targets = tmp_path / "t.json"
-    targets.write_text(json.dumps(json.loads(sim.read_text())["landmarks"]))
-    reports = {}
-    for n in (1, 2):
-        rep = tmp_path / f"r{n}.json"
-        r = _run(_mpirun(n) + PLAN + ["--targets", str(targets), "--landmarks", "Pg,Li,Ls",
-                                      "--params-used", used, "--tikhonov", "0", "--ftol",
-                                      "1e-10", "--report", str(rep), *model])
-        assert r.returncode == 0, r.stderr[-2000:]
-        reports[n] = json.loads(rep.read_text())
-    assert reports[2]["n_ranks"] == 2
-    for rep in reports.values():
-        assert rep["converged"] and rep["mean_distance_after_mm"] < 0.01
-        np.testing.assert_allclose(rep["params_optimal"], [-3, -1.5, -2, 1.5], rtol=1e-3)
+    reports = _recover(tmp_path, model, [(1, []), (2, [])])
     np.testing.assert_allclose(reports[2]["params_optimal"], reports[1]["params_optimal"],
                                rtol=1e-6, atol=1e-8)
 
@@ -191,27 +201,8 @@ def test_plan_with_the_tangents_own_preconditioner(tmp_path):
     kept factorisation plans (1 rank) within 0.01 mm and 0.01 degrees."""
     from fem.policy import TANGENT_GAMG
 
-    used = "mandible.advance_mm,mandible.lateral_mm,mandible.yaw_deg,maxilla_L.advance_mm"
-    sim = tmp_path / "sim.json"
-    r = _run(SIM[:2] + ["--case", "class3-asym", "--resolution", "tiny", "--params-used",
-                        used, "--p", "mandible.advance_mm=-3", "mandible.lateral_mm=-1.5",
-                        "mandible.yaw_deg=-2", "maxilla_L.advance_mm=1.5", "--report",
-                        str(sim)])
-    assert r.returncode == 0, r.stderr[-2000:]
-    targets = tmp_path / "t.json"
-    targets.write_text(json.dumps(json.loads(sim.read_text())["landmarks"]))
     gamg = [a for k, v in TANGENT_GAMG.items() for a in (f"-orthodiff_fwd_tangent_{k}", str(v))]
-    reports = {}
-    for n, extra in ((1, []), (2, gamg)):
-        rep = tmp_path / f"r{n}.json"
-        r = _run(_mpirun(n) + PLAN + ["--targets", str(targets), "--landmarks", "Pg,Li,Ls",
-                                      "--params-used", used, "--tikhonov", "0", "--ftol",
-                                      "1e-10", "--report", str(rep), *extra])
-        assert r.returncode == 0, r.stderr[-2000:]
-        reports[n] = json.loads(rep.read_text())
-    for rep in reports.values():
-        assert rep["converged"] and rep["mean_distance_after_mm"] < 0.01
-    np.testing.assert_allclose(reports[2]["params_optimal"], [-3, -1.5, -2, 1.5], rtol=1e-3)
+    reports = _recover(tmp_path, [], [(1, []), (2, gamg)])
     np.testing.assert_allclose(reports[2]["params_optimal"], reports[1]["params_optimal"],
                                atol=0.01)
 
