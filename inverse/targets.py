@@ -26,7 +26,8 @@ points ``{name: (3,)}``; `default_targets` maps a scene's points in and out.
   `make demo` plans the advance alone). For scenes with a midface and no
   mandible, such as Debian's Cranium CT (`make demo`).
 
-`DEFAULT_GOALS` composes them per case: class2 uses 3 landmarks, class3-asym 7 (paper 3.2).
+`DEFAULT_GOALS` composes them per case: class2 uses 3 landmarks, class3-asym 7 (paper 3.2);
+``midface-advance`` and ``e-line`` are goals by name (``plan.py --goal``).
 """
 
 from __future__ import annotations
@@ -118,9 +119,10 @@ DEFAULT_GOALS = {
     "class3-asym": lambda r: compose(r, keep(r, ("Sn", "T_L", "T_R")),
                                      true_vertical_line(r), symmetry(r)),
     "midface-advance": midface_advance,
+    "e-line": e_line,
 }
 #: The landmarks each goal needs.
-GOAL_LANDMARKS = {"midface-advance": ("Sn",)}
+GOAL_LANDMARKS = {"midface-advance": ("Sn",), "e-line": ("Prn", "Pg", "Ls", "Li")}
 
 
 def default_targets(case: str, rest: dict, frame=None) -> dict:

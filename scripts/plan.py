@@ -58,7 +58,7 @@ def main(argv=None):
                     "clinical goal)")
     ap.add_argument("--goal", help="a built-in clinical goal instead of --targets, built "
                     "on the scene's own landmarks in the head frame (inverse/targets.py): "
-                    "class1, class2, class3, class3-asym, midface-advance (default: the "
+                    "class1, class2, class3, class3-asym, midface-advance, e-line (default: the "
                     "case's)")
     ap.add_argument("--landmarks", help="comma-separated subset of the targets to use")
     ap.add_argument("--tikhonov", default=TIKHONOV,

@@ -228,6 +228,33 @@ def test_default_goals_follow_the_clinical_rules():
             assert t["Sn"] == pytest.approx(rest["Sn"].tolist())
 
 
+def test_e_line_goal_puts_the_lips_at_ricketts_distances():
+    """The e-line goal: Ls and Li moved along y only, to 4 and 2 mm behind the Prn-Pg line
+    in the profile, in a tilted head frame too (targets in the scene's frame)."""
+    from inverse.targets import E_LINE_MM, default_targets
+    from meshes.frame import HeadFrame
+    from meshes.synthetic import synthetic_head
+
+    a = synthetic_head("class3", "tiny")
+    rest = {k: (a.points[lm.facet] * np.asarray(lm.weights)[:, None]).sum(0)
+            for k, lm in a.landmarks.items()}
+    c, s = np.cos(np.radians(8.0)), np.sin(np.radians(8.0))
+    M = np.eye(4)
+    M[1:3, 1:3], M[:3, 3] = [[c, -s], [s, c]], [2.0, -5.0, 9.0]
+    frame = HeadFrame(M, {"midsagittal": "given", "horizontal": "given"})
+    scene_rest = {k: frame.to_scene(v) for k, v in rest.items()}
+    t = {k: frame.to_head(np.array(v)) for k, v in
+         default_targets("e-line", scene_rest, frame).items()}
+    assert set(t) == {"Ls", "Li"}
+    a_, b_ = rest["Prn"][1:], rest["Pg"][1:]
+    line = (b_ - a_) / np.linalg.norm(b_ - a_)
+    front = np.array([line[1], -line[0]]) * np.sign(line[1])   # unit normal, anterior (+y)
+    assert front[0] > 0
+    for k, d in E_LINE_MM.items():
+        assert np.allclose(t[k][[0, 2]], rest[k][[0, 2]])   # y only
+        assert (t[k][1:] - a_) @ front == pytest.approx(d, abs=1e-9), k   # d < 0: behind
+
+
 def test_same_goal_from_class2_and_class3_starts_gives_the_same_bone_position():
     """Paper Fig. 4 on one anatomy: start states with the mandible retruded (class II-like)
     and protruded and yawed (class III-like); the same goal gives the same bone position.
