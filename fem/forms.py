@@ -156,9 +156,9 @@ class Forms:
         return self._finite(x) and self.min_det_F() > 0
 
     def _objective(self, snes, x):
-        """Energy at x, mJ; +inf where any cell is inverted (ln det F is NaN at a P1 cell's
-        single quadrature point; P2 is also checked at the vertices). The line search asks
-        again for the point it accepted last: that value is remembered."""
+        """Energy at x, µJ (kPa mm³); +inf where any cell is inverted (ln det F is NaN at a
+        P1 cell's single quadrature point; P2 is also checked at the vertices). The line
+        search asks again for the point it accepted last: that value is remembered."""
         if self._obj_val is not None and self._obj_x.equal(x):
             return self._obj_val
         t = time.perf_counter()

@@ -117,5 +117,31 @@ class SolverPolicy:
     goal_tolerance_mm: float = 0.05
     goal_failure_mm: float = 1.0
 
+    def __post_init__(self):
+        """Every setting in its range (`POLICY_RANGES`), else `InputError` naming it."""
+        from meshes.errors import InputError
+
+        for f in dataclasses.fields(self):
+            v, (lo, hi, open_lo) = getattr(self, f.name), POLICY_RANGES[f.name]
+            number = isinstance(v, (int, float)) and not isinstance(v, bool)
+            kind = "an integer" if f.type == "int" else "a number"
+            if not (number and (lo < v if open_lo else lo <= v) and v <= hi
+                    and (f.type != "int" or float(v).is_integer())):
+                raise InputError(f"SolverPolicy.{f.name} must be {kind} in "
+                                 f"{'(' if open_lo else '['}{lo:g}, {hi:g}], got {v!r}")
+
+
+#: Each `SolverPolicy` setting's range: (low, high, low excluded). Counts of steps that a
+#: loop needs at least once (halvings, stall window, path iterations) start at 1.
+POLICY_RANGES = {
+    "qn_min_xtol": (0.0, 1.0, True), "stall_its": (1, 1000, False),
+    "stall_ratio": (0.0, 1.0, True), "qn_refreshes": (0, 100, False),
+    "quick_refreshes": (0, 100, False), "quick_refresh_progress": (0.0, 1.0, True),
+    "rate_max": (0.0, 0.99, True), "max_halvings": (1, 100, False),
+    "mumps_workspace_retries": (0, 20, False), "qn_bisections": (0, 20, False),
+    "tangent_lag_its": (0, 1000, False), "tangent_refresh_xtols": (0.0, 1e6, True),
+    "path_substep_mm": (0.0, 100.0, True), "path_iterations": (1, 1000, False),
+    "min_substep": (0.0, 100.0, True), "goal_tolerance_mm": (0.0, 100.0, True),
+    "goal_failure_mm": (0.0, 100.0, True)}
 
 DEFAULT_POLICY = SolverPolicy()

@@ -150,3 +150,18 @@ def test_no_option_makes_a_run_unbounded(script, data):
     assert r.returncode in (0, 2), (args, r.stderr[-2000:])
     if r.returncode == 2:
         assert len(errors) == 1, (args, r.stderr[-2000:])
+
+
+@pytest.mark.parametrize("setting, value", [
+    ("max_halvings", 0), ("stall_its", 2.5), ("stall_ratio", 0.0), ("rate_max", 1.0),
+    ("qn_bisections", True), ("tangent_lag_its", -1), ("path_substep_mm", float("nan")),
+    ("goal_failure_mm", 0.0)])
+def test_a_solver_policy_out_of_range_is_refused(setting, value):
+    """`SolverPolicy` checks each setting where it is made (``max_halvings=0`` once left a
+    variable unbound in the line search): one clear error naming it."""
+    import dataclasses
+
+    from fem.policy import DEFAULT_POLICY
+
+    with pytest.raises(InputError, match=f"SolverPolicy.{setting} must be"):
+        dataclasses.replace(DEFAULT_POLICY, **{setting: value})
