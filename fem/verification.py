@@ -72,16 +72,26 @@ def _solve_neo_hookean(mesh, degree: int, material, u_exact, body=None):
     facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
     bc = dolfinx.fem.dirichletbc(g, dolfinx.fem.locate_dofs_topological(V, 2, facets))
     u.interpolate(u_exact)   # the start: the boundary values everywhere
-    solver = NewtonSolver(mesh.comm, NonlinearProblem(residual, u, bcs=[bc], J=jacobian))
-    solver.convergence_criterion, solver.rtol, solver.atol = "residual", 1e-12, 1e-13
+    lu_newton(residual, u, [bc], jacobian, convergence_criterion="residual", rtol=1e-12,
+              atol=1e-13).solve(u)
+    return u
+
+
+def lu_newton(residual, u, bcs, jacobian, **settings):
+    """The FEniCSx tutorial's recipe for ``residual`` (UFL form) = 0 in ``u``: dolfinx's
+    ``NonlinearProblem`` and ``NewtonSolver`` with a MUMPS LU each step, its attributes
+    ``settings`` (e.g. ``convergence_criterion``, ``rtol``, ``max_it``): the solver."""
+    solver = NewtonSolver(u.function_space.mesh.comm,
+                          NonlinearProblem(residual, u, bcs=list(bcs), J=jacobian))
+    for k, val in settings.items():
+        setattr(solver, k, val)
     ksp = solver.krylov_solver
     opts, prefix = PETSc.Options(), ksp.getOptionsPrefix()
     for k, val in {"ksp_type": "preonly", "pc_type": "lu",
                    "pc_factor_mat_solver_type": "mumps"}.items():
         opts[f"{prefix}{k}"] = val
     ksp.setFromOptions()
-    solver.solve(u)
-    return u
+    return solver
 
 
 def manufactured_error(n: int, degree: int = 1, material=None, amplitude: float = 0.05,

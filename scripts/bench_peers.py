@@ -35,11 +35,7 @@ def _timed(f):
 
 
 def _forward(res: str, comm) -> dict:
-    from petsc4py import PETSc
-
-    from dolfinx.fem.petsc import NonlinearProblem
-    from dolfinx.nls.petsc import NewtonSolver
-
+    from fem.verification import lu_newton
     from inverse.scene import Scene
     from inverse.treatment import PLAN_PARAMS
 
@@ -51,16 +47,8 @@ def _forward(res: str, comm) -> dict:
     eq.set_params(p)
     eq.u.x.array[:] = 0.0
     eq.u.x.scatter_forward()
-    problem = NonlinearProblem(eq.ufl_forms["residual"], eq.u, bcs=eq.bcs,
-                               J=eq.ufl_forms["jacobian"])
-    solver = NewtonSolver(comm, problem)
-    solver.convergence_criterion, solver.rtol, solver.max_it = "incremental", 1e-8, 50
-    ksp = solver.krylov_solver
-    opts, prefix = PETSc.Options(), ksp.getOptionsPrefix()
-    for k, v in {"ksp_type": "preonly", "pc_type": "lu",
-                 "pc_factor_mat_solver_type": "mumps"}.items():
-        opts[f"{prefix}{k}"] = v
-    ksp.setFromOptions()
+    solver = lu_newton(eq.ufl_forms["residual"], eq.u, eq.bcs, eq.ufl_forms["jacobian"],
+                       convergence_criterion="incremental", rtol=1e-8, max_it=50)
     (its, converged), peer = _timed(lambda: solver.solve(eq.u))
     lm_peer = scene.landmarks()
     diff = max(float(abs(lm_ours[k] - lm_peer[k]).max()) for k in lm_ours)
