@@ -266,10 +266,10 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     spec, cuts, frame = parse_scene_file(scene_file)
     timings = {}
     t = time.perf_counter()
-    volume = read_volume(ct_path)
+    is_map = labelmap or spec.get("labels") is not None
+    volume = read_volume(ct_path).coarsened(labels=is_map)   # a CBCT's voxels averaged
     timings["read"] = time.perf_counter() - t
 
-    is_map = labelmap or spec.get("labels") is not None
     bone_hu = None if is_map else float(spec.get("bone_hu", seg.BONE_HU))
 
     def masks(v):

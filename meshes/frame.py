@@ -340,11 +340,6 @@ ORBIT_CLOSING_MM = 40.0
 ORBIT_MIN_MM2 = 300.0
 ORBIT_OFFSET_MM = (12.0, 55.0)
 ORBIT_ABOVE_PORION_MM = (-20.0, 50.0)
-#: The frame is estimated on voxels at least this far apart (mm): a CBCT's 0.3-0.4 mm voxels
-#: are taken every k-th (Cranium resampled at 0.4 mm, 147 M voxels: 14.7 s on every 2nd
-#: voxel, within 0.3 degrees of its frame at 0.96 mm; the edges are placed at sub-voxel
-#: precision).
-ESTIMATE_VOXEL_MM = 0.9
 #: Found points are refused (the FH assumed) when the porions' heights differ by more than
 #: this, or the FH is tilted from the scan's axial plane by more than FH_MAX_TILT_DEG: a patient
 #: is not scanned upside down, and such a plane means the search found something else.
@@ -457,13 +452,8 @@ def estimate(volume, bone: np.ndarray, bone_hu: float | None = None) -> HeadFram
     """The frame of a CT (`meshes.volume.Volume`, the whole scan) with its bone mask: the MSP
     by symmetry; the FH through the porions and the left orbitale (the right where the left is
     not found) where ``bone_hu`` is given (a CT in HU) and `frankfort_points` finds them,
-    else the scan's axial plane, with a warning that says so (module docstring)."""
-    step = np.maximum(1, np.floor(ESTIMATE_VOXEL_MM / volume.spacing)).astype(int)
-    if (step > 1).any():   # a CBCT's fine voxels: every k-th, about ESTIMATE_VOXEL_MM apart
-        cut = tuple(slice(None, None, k) for k in step)
-        volume = dataclasses.replace(volume, array=volume.array[cut],
-                                     spacing=volume.spacing * step)
-        bone = bone[cut]
+    else the scan's axial plane, with a warning that says so (module docstring). A CBCT's
+    fine voxels are averaged first (`meshes.volume.Volume.coarsened`, by the caller)."""
     n, origin, rms = symmetry_plane(volume, bone)
     frame = from_axes(n, np.array([0.0, 0.0, 1.0]), origin,
                       {"midsagittal": "estimated", "horizontal": "assumed"})

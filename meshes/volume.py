@@ -24,6 +24,14 @@ from meshes.errors import MeshError
 F = np.diag([1.0, -1.0, 1.0])
 #: Largest deviation of a direction cosine from the axes before an image is resampled.
 AXIS_TOL = 1e-4
+#: The CT pipeline works on voxels at least this far apart (mm, `Volume.coarsened`): a CBCT's
+#: 0.2-0.4 mm voxels are averaged in blocks of k per axis, k = floor(WORK_VOXEL_MM / voxel).
+#: A mesh edge of 1.4 mm (fine) or more cannot use finer detail, and the averaging cuts a
+#: CBCT's noise. Cranium resampled at 0.4 mm (612 x 612 x 405 voxels) to a paper scene, AMD
+#: EPYC, 1 rank: 59.0 s and 2.9 GB peak on every voxel (the frame estimated on every 2nd);
+#: figures of the averaged grid in BENCHMARKS.md (`bench.py ct`). Voxels of 0.45 mm or more
+#: (Cranium 0.96 mm, headsq 1.5-3.2 mm, every test CT) are used as they are.
+WORK_VOXEL_MM = 0.9
 
 
 @dataclasses.dataclass
@@ -65,6 +73,24 @@ class Volume:
             sl.append(slice(keep[0], keep[-1] + 1))
         origin = self.origin + self.spacing * np.array([s.start for s in sl])
         return Volume(self.array[tuple(sl)], self.spacing.copy(), origin, self.name)
+
+    def coarsened(self, min_mm: float = WORK_VOXEL_MM, labels: bool = False) -> "Volume":
+        """The volume on voxels about ``min_mm`` apart where its own are finer: blocks of k
+        voxels per axis (k = floor(min_mm / spacing), at least 1; a partial block at the far
+        end is dropped) become one at their centre, the mean (HU, float32) or, for a label
+        map (``labels``), the label at the block's middle voxel. ``self`` where every k is 1."""
+        k = np.maximum(1, np.floor(min_mm / self.spacing)).astype(int)
+        if (k == 1).all():
+            return self
+        n = np.array(self.array.shape) // k
+        if labels:
+            a = self.array[tuple(slice(j // 2, j // 2 + m * j, j) for j, m in zip(k, n))]
+        else:
+            a = self.array[:n[0] * k[0], :n[1] * k[1], :n[2] * k[2]]
+            a = a.reshape(n[0], k[0], n[1], k[1], n[2], k[2]).mean(axis=(1, 3, 5),
+                                                                  dtype=np.float32)
+        return Volume(np.ascontiguousarray(a), self.spacing * k,
+                      self.origin + self.spacing * (k - 1) / 2, self.name)
 
 
 def read_volume(path) -> Volume:

@@ -4,7 +4,8 @@ For each CT and resolution, each step a fresh script process, as a user chains t
 ``ct_scene.py`` (a fresh cache: every stage timed), ``simulate.py --mesh`` with a 5 mm
 advance of the moved bone (the soft-to-hard ratios of `scripts.bench_plausibility` where
 the landmarks exist), and ``plan.py --mesh`` to the CT's clinical goal (`CTS`), each with
-every tissue model of `MODELS`.
+every tissue model of `MODELS`. Then Cranium resampled at a CBCT's voxel size (`CBCT_MM`) to a
+paper scene: time and peak memory against Cranium's own voxels, same run.
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ CTS = {
 }
 MOVE_MM = 5.0
 GOAL_S = 60.0
+#: A CBCT's voxel (mm): Cranium resampled (linearly) to it is the CBCT-size volume, 612 x 612
+#: x 405 voxels, to be a paper scene in at most GOAL_CBCT_S and GOAL_CBCT_MB peak (issue 30).
+CBCT_MM, GOAL_CBCT_S, GOAL_CBCT_MB = 0.4, 30.0, 2048.0
 #: Issue 30's goals at paper size (ratios in one run): a CT's forward solve (the 5 mm
 #: advance, glued and homogeneous: the synthetic heads' physics) over the synthetic
 #: `REFERENCE` head's (its mandible advanced as much, about the same vertex count), and a
@@ -196,6 +200,13 @@ def ct(args) -> None:
              "advance with the same physics; solve seconds (the equilibrium, not loading).", ""]
     body += table(["CT", "resolution", "CT vertices", "synthetic vertices", "CT forward s",
                    "synthetic forward s", "ratio"], ct_ratios)
+    cbct_rows = _cbct(goals) if "cranium" in args.cts.split(",") else []
+    body += ["", f"A CBCT-size volume: Cranium resampled (linearly) at {CBCT_MM:g} mm, to a "
+             "paper scene by `ct_scene.py` in a fresh cache (its voxels are averaged in 2 x 2 "
+             "x 2 blocks first, `meshes.volume.WORK_VOXEL_MM`), against Cranium's own "
+             "voxels in the same run; peak memory is the process's resident set.", ""]
+    body += table(["CT", "voxels", "voxel mm", "vertices", "min quality", "pitch, roll, yaw",
+                   *STAGES, "total s", "peak MB"], cbct_rows)
     body += ["", "The head frame of each CT (`meshes.frame`, `ct.json`): its tilt from the "
              "scanner's axes (degrees, the treatment's convention: pitch > 0 the face turned "
              "up, roll > 0 the left side down, yaw > 0 the face turned to the patient's "
@@ -227,3 +238,56 @@ def ct(args) -> None:
         plt.legend(fontsize=7)
     body += ["", f"![ct]({plot('ct_stages', draw)})"]
     write_section("ct", "\n".join(body), goals)
+
+
+def _cbct(goals: list) -> list:
+    """Table rows of Cranium at its own voxels and resampled at `CBCT_MM`, each to a paper
+    scene in a fresh cache; appends the CBCT's goal rows to ``goals``."""
+    import numpy as np
+    from scipy import ndimage
+
+    from meshes.volume import Volume, read_volume, write_volume
+    from scripts._bench import goal
+
+    if not CRANIUM_CT.exists():
+        return [["cranium", "", f"absent: {CRANIUM_CT}"] + [""] * (len(STAGES) + 4)]
+    rows, reps = [], {}
+    with tempfile.TemporaryDirectory() as d:
+        v = read_volume(CRANIUM_CT)
+        zoom = v.spacing / CBCT_MM
+        cbct = Path(d) / "cranium-cbct.mha"
+        write_volume(Volume(ndimage.zoom(v.array, zoom, order=1), np.full(3, CBCT_MM),
+                            v.origin, "cranium-cbct"), cbct)
+        shapes = {"cranium": v.array.shape, "cranium, CBCT-size": np.round(
+            np.array(v.array.shape) * zoom).astype(int)}
+        del v
+        for name, path in (("cranium", CRANIUM_CT), ("cranium, CBCT-size", cbct)):
+            with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
+                rep = _run("ct_scene.py", ["--ct", str(path), "--osteotomies",
+                                           str(CTS["cranium"][1]), "--resolution", "paper",
+                                           "--out", out],
+                           dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+                                ORTHODIFF_CACHE=cache))
+            if "error" in rep:
+                rows.append([name, "", rep["error"]] + [""] * (len(STAGES) + 4))
+                continue
+            reps[name] = rep
+            t, tilt = rep["timings_s"], rep["head_tilt_deg"]
+            rows.append([name, " x ".join(map(str, shapes[name])),
+                         " x ".join(f"{x:.2f}" for x in rep["voxel_mm"]),
+                         str(rep["n_vertices"]), f"{rep['min_quality']:.3f}",
+                         ", ".join(f"{tilt[k]:+.2f}" for k in ("pitch_deg", "roll_deg",
+                                                                "yaw_deg")),
+                         *(f"{t.get(k, 0.0):.1f}" for k in STAGES), f"**{t['total']:.1f}**",
+                         f"{rep['peak_rss_mb']:.0f}"])
+    got = reps.get("cranium, CBCT-size")
+    if got is not None:
+        own = reps.get("cranium")
+        note = "" if own is None else \
+            f"{got['timings_s']['total'] / own['timings_s']['total']:.2f}x Cranium's own voxels"
+        goals.append(goal(f"CBCT-size volume ({CBCT_MM:g} mm) to a paper scene, 1 rank (ct)",
+                          got["timings_s"]["total"], "s", limit=GOAL_CBCT_S, source="issue 30",
+                          note=note))
+        goals.append(goal(f"CBCT-size volume ({CBCT_MM:g} mm), peak memory, 1 rank (ct)",
+                          got["peak_rss_mb"], "MB", limit=GOAL_CBCT_MB, source="issue 30"))
+    return rows

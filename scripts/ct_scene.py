@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from scripts._common import parse, run_main  # noqa: E402
+from scripts._common import parse, peak_rss_mb, run_main  # noqa: E402
 
 MESH_NAME = "scene.vtu"
 
@@ -64,7 +64,8 @@ def propose(args, comm) -> int:
     if comm.rank == 0:
         try:
             base = None if args.osteotomies is None else read_scene_file(args.osteotomies)
-            spec = proposal(read_volume(args.ct), base, args.osteotomies or "")
+            spec = proposal(read_volume(args.ct).coarsened(), base,
+                            args.osteotomies or "")
         except MeshError as e:
             spec = str(e)
     spec = comm.bcast(spec, root=0)
@@ -146,7 +147,9 @@ def main(argv=None):
         write_on_root(args.picture, (lambda p: render_scene(anatomy, p)) if comm.rank == 0
                       else None, comm)
     if args.report:
-        write_json(args.report, comm.bcast(report, root=0), comm)
+        rss = peak_rss_mb(comm)   # collective; the scene is built on rank 0
+        write_json(args.report, comm.bcast(report and {**report, "peak_rss_mb": rss}, root=0),
+                   comm)
     return 0
 
 

@@ -185,6 +185,33 @@ def test_volume_formats_read_back_in_the_scene_frame(tmp_path, suffix):
     np.testing.assert_allclose(w.origin, v.origin, atol=1e-4)
 
 
+def test_a_cbcts_fine_voxels_are_averaged_in_blocks():
+    """Voxels finer than half of WORK_VOXEL_MM become block means (HU) or the block's middle
+    label, each at its block's centre, so a position keeps its value; coarser ones stay."""
+    from meshes.volume import WORK_VOXEL_MM, Volume
+
+    sp = np.array([0.3, 0.4, 1.0])    # k = 3, 2, 1 per axis
+    i, j = np.meshgrid(np.arange(10), np.arange(7), np.arange(4), indexing="ij")[:2]
+    origin = np.array([-5.0, 2.0, 7.0])
+    v = Volume((30 * i + 4 * j).astype(np.int16), sp, origin, "ct")   # linear in position
+    w = v.coarsened()
+    k = np.maximum(1, np.floor(WORK_VOXEL_MM / sp)).astype(int)
+    assert k.tolist() == [3, 2, 1]
+    assert w.array.shape == (3, 3, 4) and np.allclose(w.spacing, sp * k)
+    np.testing.assert_allclose(w.origin, origin + sp * (k - 1) / 2)
+    # a block's mean is the value at its centre (the last, partial blocks dropped)
+    ci, cj = ((w.centres(a) - origin[a]) / sp[a] for a in (0, 1))
+    np.testing.assert_allclose(w.array, (30 * ci[:, None, None] + 4 * cj[None, :, None])
+                               + np.zeros((1, 1, 4)), atol=1e-4)
+    labels = Volume(np.arange(10 * 7 * 4).reshape(10, 7, 4) % 3, sp, origin, "labels")
+    m = labels.coarsened(labels=True)
+    assert m.array.dtype == labels.array.dtype and m.array.shape == (3, 3, 4)
+    assert np.array_equal(m.array, labels.array[1:9:3, 1:7:2])   # each block's middle voxel
+    np.testing.assert_allclose(m.origin, w.origin)
+    coarse = Volume(v.array, np.array([0.5, 0.96, 3.2]), origin, "ct")
+    assert coarse.coarsened() is coarse
+
+
 def _write_dicom_series(v, folder: Path) -> None:
     """``v`` as a CT DICOM series, one file per axial slice, with the tags a scanner writes
     (position and orientation in LPS, spacing, slice thickness, int16 HU: SimpleITK's
