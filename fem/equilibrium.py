@@ -236,6 +236,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
         self._obj_val = None                 # its energy (None: not valid)
         self._w, self._r = self._uvec.duplicate(), self.b.duplicate()   # line-search trial
+        self._x_prev = self._uvec.duplicate()  # the previous SNES iterate (step size)
         self._direction = np.inf             # inf-norm of the last search direction, mm
         self._fnorms = []                    # residual norms of this SNES solve
         self._refresh = None                 # why it stopped to refactorise: stalled, tangent
@@ -298,7 +299,8 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._invalidate()
         self._drop_qn_snes()
         for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self._obj_x, self._w, self._r, self.u_eq, self.dfdg, self.dfdR,
+                    self._x, self._x_prev, self._obj_x, self._w, self._r, self.u_eq,
+                    self.dfdg, self.dfdR,
                     *self._dfdp]:
             if obj is not None:
                 obj.destroy()

@@ -15,7 +15,7 @@ import numpy as np
 
 from fem.policy import METHOD_DEFAULTS, METHODS, PRESETS
 
-log = logging.getLogger("fem.equilibrium")
+log = logging.getLogger(__name__)
 
 
 #: MUMPS errors (INFOG(1)) of a too small workspace (ICNTL(14) is then doubled).

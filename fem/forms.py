@@ -17,7 +17,7 @@ import numpy as np
 from fem import compat
 from meshes.errors import InputError
 
-log = logging.getLogger("fem.equilibrium")
+log = logging.getLogger(__name__)
 
 #: Default penalty stiffness k per unit active area, kPa/mm (= mN/mm^3): max active goal
 #: error 0.002 mm on a 5 mm advance, 0.041 mm on the demo treatment (goal: 0.05 mm).

@@ -17,14 +17,15 @@ from fem import compat
 from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
 from meshes.errors import SolverError
 
-log = logging.getLogger("fem.equilibrium")
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass
 class SolveStats:
-    """What one equilibrium solve did. Times in seconds."""
+    """What one equilibrium solve did. Times in seconds; ``iterations``: nonlinear iterations
+    of whichever method ran (quasi-Newton, Newton, the path's)."""
 
-    newton_iterations: int = 0
+    iterations: int = 0
     shifts: list = dataclasses.field(default_factory=list)
     continuation_steps: int = 0
     residual_history: list = dataclasses.field(default_factory=list)
@@ -38,6 +39,11 @@ class SolveStats:
     goal_error: float = 0.0   # max |u - B p| over active vertices, mm
     min_det_F: float = 1.0    # smallest volume ratio J at the equilibrium
     warnings: list = dataclasses.field(default_factory=list)   # goal error, compression
+
+    @property
+    def newton_iterations(self) -> int:
+        """``iterations`` (its name before it counted quasi-Newton too; kept for callers)."""
+        return self.iterations
 
 
 class NonlinearSolves:
@@ -100,7 +106,7 @@ class NonlinearSolves:
             return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
         if it == 0:
             self._f0 = fnorm if self._f_ref is None else self._f_ref
-            self._x_prev = snes.getSolution().copy()
+            snes.getSolution().copy(self._x_prev)
             return 0
         x = snes.getSolution()
         self._x_prev.axpy(-1.0, x)
@@ -290,7 +296,7 @@ class NonlinearSolves:
             snes.solve(None, self._x)
             reason = snes.getConvergedReason()
             self._last_its = snes.getIterationNumber()
-            self._stats.newton_iterations += self._last_its
+            self._stats.iterations += self._last_its
             self._stats.linear_iterations += snes.getLinearSolveIterations()
             self._set_state(self._x)
             crushed = False

@@ -15,7 +15,7 @@ import numpy as np
 from fem.nonlinear import SolveStats
 from meshes.errors import SolverError
 
-log = logging.getLogger("fem.equilibrium")
+log = logging.getLogger(__name__)
 
 
 class PathFollowing:
@@ -122,7 +122,7 @@ class PathFollowing:
                 prev, x, h_prev = x, start, h
                 t = 1.0 if t + h > 1.0 - 1e-12 else t + h
                 st = self.relax(p0 + t * (p - p0), x, iterations, resume=substeps > 0)
-                stats.newton_iterations += st.newton_iterations
+                stats.iterations += st.iterations
                 stats.factorisations += st.factorisations
                 substeps += 1
             found = True
@@ -185,7 +185,7 @@ class PathFollowing:
         x0 = x.copy()
         try:
             snes.solve(None, x)
-            self._stats.newton_iterations = snes.getIterationNumber()
+            self._stats.iterations = snes.getIterationNumber()
             if not self._sound(x) or self._fnorms[-1] > self._fnorms[0]:
                 x0.copy(x)   # steps that end unsound or with a larger residual: keep x
         finally:

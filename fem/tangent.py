@@ -13,7 +13,7 @@ import numpy as np
 
 from meshes.errors import SolverError
 
-log = logging.getLogger("fem.equilibrium")
+log = logging.getLogger(__name__)
 
 
 class TangentSolves:

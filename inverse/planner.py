@@ -33,7 +33,7 @@ from inverse.objective import Objective
 from inverse.treatment import FTOL
 from meshes.errors import InputError, SolverError
 
-log = logging.getLogger("orthodiff.plan")
+log = logging.getLogger(__name__)
 
 #: Line-search trials with a step fraction above this are solved by quasi-Newton alone: a
 #: trial it cannot solve is shortened (at paper size, Newton spent 200 s on one such trial).
@@ -50,7 +50,7 @@ class PlanResult:
         converged: a stopping test was met (``reason`` says which); False on the iteration
             limit or a failed line search, which is reported, never raised.
         history: one dict per iteration: iteration, T, mean_distance_mm, params, step, alpha, mu,
-            newton_iterations, forward_solves, time_s.
+            iterations, forward_solves, time_s.
         gn_iterations, forward_solves: counts; timings: forward, adjoint, sensitivity,
             line_search, total.
     """
@@ -152,19 +152,19 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         t = time.perf_counter()
         try:
             st = eq.solve(q, quick=quick)
-            return st.newton_iterations
+            return st.iterations
         finally:
             forward_solves += 1
             timings[key] += time.perf_counter() - t
 
-    newton = forward(p, "forward") if np.any(p != eq.p) else 0
+    its = forward(p, "forward") if np.any(p != eq.p) else 0
     tighten(float(objective.distances().mean()))
     if eq.xtol < eq.solved_xtol:   # the start to the plan's accuracy
-        newton += forward(p, "forward")
+        its += forward(p, "forward")
     T = T0 = objective.value()
     w3 = np.repeat(objective.weights, 3)
     history = [dict(iteration=0, T=T, mean_distance_mm=float(objective.distances().mean()),
-                    params=p.copy(), step=0.0, alpha=0.0, mu=mu, newton_iterations=newton,
+                    params=p.copy(), step=0.0, alpha=0.0, mu=mu, iterations=its,
                     forward_solves=forward_solves, time_s=time.perf_counter() - t_start)]
     _log(history[-1])
     if callback is not None:
@@ -189,14 +189,14 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
             converged, reason, it = True, "predicted decrease below ftol", it - 1
             break
         base = eq.snapshot()
-        accepted, newton = False, 0
+        accepted, its = False, 0
         for _ in range(6):   # raise the damping until a step is accepted
             dp *= min(1.0, max_step / max(np.max(np.abs(dp)), 1e-300))  # trust region
             alpha = 1.0
             for _ in range(max_backtracks + 1):
                 q = np.clip(p + alpha * dp, lo, hi)
                 try:   # long trials may be cut short: quasi-Newton only, no fallback
-                    newton += forward(q, "line_search", quick=alpha > QUICK_ALPHA)
+                    its += forward(q, "line_search", quick=alpha > QUICK_ALPHA)
                     T_q = objective.value()
                 except SolverError as e:
                     log.info("trial p = %s failed: %s", np.round(q, 4).tolist(), e)
@@ -221,7 +221,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         mu = max(mu / 10, 1e-9) if alpha == 1.0 else max(4 * mu, 1e-3)
         history.append(dict(iteration=it, T=T, mean_distance_mm=float(
             objective.distances().mean()), params=p.copy(), step=step, alpha=alpha, mu=mu,
-            newton_iterations=newton, forward_solves=forward_solves,
+            iterations=its, forward_solves=forward_solves,
             time_s=time.perf_counter() - t_start))
         _log(history[-1])
         if callback is not None:
@@ -266,4 +266,4 @@ def plan_report(scene, result: PlanResult, targets: dict, before: dict) -> dict:
 def _log(h):
     log.info("GN %2d  T = %.4e mm²  mean distance %.4f mm  step %.3g  alpha %.3g  "
              "Newton %d  %.1f s", h["iteration"], h["T"], h["mean_distance_mm"], h["step"],
-             h["alpha"], h["newton_iterations"], h["time_s"])
+             h["alpha"], h["iterations"], h["time_s"])

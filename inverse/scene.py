@@ -54,7 +54,9 @@ class Scene:
             (default: the anatomy's ``material``: a CT scene's tissues, a synthetic head's
             homogeneous material).
         penalty (kPa/mm), solver (preset name), options (PETSc options), and
-            ``newton`` (dict: xtol, frtol, max_it, ...): passed to `fem.equilibrium.Equilibrium`.
+            ``equilibrium`` (dict: method, xtol, frtol, max_it, ...; the nonlinear solve,
+            quasi-Newton or Newton): passed to `fem.equilibrium.Equilibrium`. ``newton``: the
+            same dict under its former name.
     """
 
     case: str | None = None
@@ -64,9 +66,13 @@ class Scene:
                  params_used=None, occlusion="free", linear: bool = False,
                  groups: bool = True, material: NeoHookean | Tissues | str | None = None,
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
-                 options: dict | None = None, newton: dict | None = None,
+                 options: dict | None = None, equilibrium: dict | None = None,
                  contact: str | None = None, degree: int = 1,
-                 comm: MPI.Comm = MPI.COMM_WORLD):
+                 comm: MPI.Comm = MPI.COMM_WORLD, newton: dict | None = None):
+        if newton is not None and equilibrium is not None:
+            raise InputError("give the equilibrium's settings once: 'equilibrium' (or its "
+                             "former name 'newton')")
+        equilibrium = newton if equilibrium is None else equilibrium
         t0 = time.perf_counter()
         self.domain = create_domain(anatomy, comm, degree=degree)
         self.timings = {"mesh": time.perf_counter() - t0}
@@ -101,7 +107,7 @@ class Scene:
         t0 = time.perf_counter()
         self.eq = Equilibrium(self.domain, self.treatment.goal_map(self.domain), glued,
                               sliding, material=material, penalty=penalty, solver=solver,
-                              options=options, **(newton or {}))
+                              options=options, **(equilibrium or {}))
         self.timings["compile"] = time.perf_counter() - t0
         self._landmark_op = self.domain.point_operator(list(self.domain.landmarks))
 

@@ -166,7 +166,7 @@ class Session:
         return {"p": dict(zip(self.scene.param_names, p.tolist())), "vertices": skin.tolist(),
                 "landmarks": {n: np.asarray(x).tolist() for n, x in landmarks.items()},
                 "transforms": [motions[s].tolist() for s in self.scene.domain.segments],
-                "newton_iterations": int(iterations), "seconds": seconds,
+                "iterations": int(iterations), "seconds": seconds,
                 "first_order_error_max_mm": float(np.linalg.norm(skin - first, axis=1).max())}
 
     def solve(self, p) -> dict:
@@ -183,17 +183,17 @@ class Session:
             start.destroy()
         seconds = time.perf_counter() - t
         return self._answer(self._skin(), self.scene.landmarks(), p,
-                            stats.newton_iterations, seconds)
+                            stats.iterations, seconds)
 
     def corrected(self, p) -> dict:
         """The corrected prediction at p (`SkinPredictor.corrected`), the keys of `solve`.
         Collective."""
         eq = self.scene.eq
-        before = eq.stats.newton_iterations
+        before = eq.stats.iterations
         t = time.perf_counter()
         skin, landmarks = self.pred.corrected(p - self.pred.p0)
         seconds = time.perf_counter() - t
-        return self._answer(skin, landmarks, p, eq.stats.newton_iterations - before, seconds)
+        return self._answer(skin, landmarks, p, eq.stats.iterations - before, seconds)
 
     def relinearise(self, p) -> dict:
         """Solve at p and make it the new p0, with new skin sensitivities. Collective."""

@@ -171,7 +171,7 @@ def scene_from_args(args, comm, plan: bool = False, groups: bool = True):
     from inverse.treatment import JAWS_PARAMS, PLAN_PARAMS
 
     kw = {"solver": args.solver, "comm": comm, "degree": args.degree,
-          "newton": {"method": args.method}, "occlusion": args.occlusion,
+          "equilibrium": {"method": args.method}, "occlusion": args.occlusion,
           "linear": args.treatment == "linear", "groups": groups, "contact": args.contact,
           "material": args.material}
     if args.params_used is not None:

@@ -133,7 +133,7 @@ def acc_tolerance(args) -> None:
                 if (res, 2) in refs and xtol == 1e-10:
                     continue
                 scene = Scene.from_case("class3", res,
-                                        newton=dict(method=m, xtol=xtol, frtol=frtol))
+                                        equilibrium=dict(method=m, xtol=xtol, frtol=frtol))
                 p = scene.param_vector(dict(t.split("=") for t in TREATMENT))
                 row = [xtol, frtol]
                 for q in (p, p + 0.3 * np.eye(len(p))[0] + 0.1 * np.eye(len(p))[1]):
@@ -142,7 +142,7 @@ def acc_tolerance(args) -> None:
                     dt = time.perf_counter() - t
                     lm = np.array(list(scene.landmarks().values()))
                     refs.setdefault((res, len(row)), lm)
-                    row += [st.newton_iterations, dt, float(np.linalg.norm(
+                    row += [st.iterations, dt, float(np.linalg.norm(
                         lm - refs[(res, len(row))], axis=1).max())]
                 curve.append(row)
                 print(method, res, row, flush=True)
@@ -307,7 +307,7 @@ def acc_order(args) -> None:
         t = rep["timings_s"]["solve"]
         if (d, r) != ref:
             curves[d].append((t, err.max(), r))
-        rows.append([f"P{d}", r, rep["n_vertices"], rep["n_dofs"], rep["newton_iterations"],
+        rows.append([f"P{d}", r, rep["n_vertices"], rep["n_dofs"], rep["iterations"],
                      f"{t:.1f}", f"{rep['peak_rss_mb']:.0f}",
                      "reference" if (d, r) == ref else f"{err.max():.3f}",
                      "" if (d, r) == ref else f"{err.mean():.3f}",

@@ -141,7 +141,7 @@ def ct(args) -> None:
                                             "--params-used", plan_params],
                                 env) if goal_lms else {"error": "none"}
                     fwd = "failed" if "error" in sim else \
-                        f"{sim['timings_s']['solve']:.1f} ({sim['newton_iterations']})"
+                        f"{sim['timings_s']['solve']:.1f} ({sim['iterations']})"
                     pl = plan.get("error", "")[:40] if "error" in plan else (
                         f"{plan['mean_distance_before_mm']:.2f} → "
                         f"{plan['mean_distance_after_mm']:.2f} mm, "

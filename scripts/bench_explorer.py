@@ -105,7 +105,7 @@ def explorer(args) -> None:
             rows.append([res, m["n_skin"], m["n_params"], n, f"{m['start_s']:.1f}",
                          f"**{m['ready_s']:.2f}**",
                          "**{:.1f}** / {:.1f} / {:.1f}".format(*m["frame_ms"]),
-                         f"**{s['seconds']:.2f}** ({s['newton_iterations']})",
+                         f"**{s['seconds']:.2f}** ({s['iterations']})",
                          f"{m['solve_request_s']:.2f}", f"{s['first_order_error_max_mm']:.3f}",
                          f"{c['seconds']:.2f}", f"{m['corrected_error_max_mm']:.3f}",
                          f"{m['relinearise_s']:.2f}", m["console_errors"]])

@@ -62,7 +62,7 @@ def forward(args) -> None:
                                       "(forward)", t["solve"], "s", limit=FORWARD_GOAL_S,
                                       source="the paper: 32 s on 6 cores")]
                     rows.append([res, r["n_vertices"], 3 * r["n_vertices"], n, solver, method,
-                                 r["newton_iterations"], r["linear_iterations"],
+                                 r["iterations"], r["linear_iterations"],
                                  len(r["diagonal_shifts"]), r["factorisations"],
                                  f"{t['assemble']:.2f}", f"{t['linear_solve']:.2f}",
                                  f"**{t['solve']:.2f}**", f"{r['peak_rss_mb']:.0f}",
@@ -168,7 +168,7 @@ def stress(args) -> None:
             rows.append([res, f"{m:g}", r["error"][:70]] + [""] * (len(head) - 3))
         else:
             times.setdefault(res, []).append((m, r["timings_s"]["solve"]))
-            rows.append([res, f"{m:g}", r["newton_iterations"], r["factorisations"],
+            rows.append([res, f"{m:g}", r["iterations"], r["factorisations"],
                          len(r["diagonal_shifts"]), r["continuation_steps"],
                          f"{r['min_det_F']:.2f}", f"{r['active_goal_error_max_mm']:.3f}",
                          f"**{r['timings_s']['solve']:.2f}**"])

@@ -52,7 +52,7 @@ def _forward(res: str, comm) -> dict:
     (its, converged), peer = _timed(lambda: solver.solve(eq.u))
     lm_peer = scene.landmarks()
     diff = max(float(abs(lm_ours[k] - lm_peer[k]).max()) for k in lm_ours)
-    out = {"ours_s": ours, "ours_its": st.newton_iterations, "peer_s": peer,
+    out = {"ours_s": ours, "ours_its": st.iterations, "peer_s": peer,
            "peer_its": int(its), "peer_converged": bool(converged), "landmarks_mm": diff}
     scene.eq.destroy()
     return out
@@ -65,7 +65,7 @@ def _gradient(res: str, comm) -> dict:
     from inverse.treatment import PLAN_PARAMS, TIKHONOV
 
     scene = Scene.from_case("class3", res, params_used=PLAN_PARAMS, comm=comm,
-                            newton=dict(xtol=FD_XTOL))
+                            equilibrium=dict(xtol=FD_XTOL))
     obj = scene.objective(scene.default_targets(), tikhonov=TIKHONOV)
     p = scene.param_vector({"mandible.advance_mm": 5.0})
     scene.solve(p, tangent=True)

@@ -73,7 +73,7 @@ def main(argv=None):
         "n_dofs": scene.domain.n_dofs,
         "n_ranks": comm.size, "param_names": scene.param_names, "params": p,
         "landmarks": moved, "landmarks_rest": rest, "active_goal_error_max_mm": err,
-        "newton_iterations": stats.newton_iterations,
+        "iterations": stats.iterations,
         "linear_iterations": stats.linear_iterations, "converged": True,
         "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
         "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
@@ -86,7 +86,7 @@ def main(argv=None):
         write_json(args.report, report, comm)
     if comm.rank == 0:
         print(f"{report['case']}: {report['n_vertices']} vertices, {comm.size} rank(s), "
-              f"{stats.newton_iterations} Newton iterations, max active goal error "
+              f"{stats.iterations} iterations, max active goal error "
               f"{err:.4f} mm, {timings['total']:.1f} s")
         for name in moved:
             d = moved[name] - rest[name]

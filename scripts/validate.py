@@ -193,7 +193,7 @@ def main(argv=None):
               "segments": {k: {"transform": T.tolist(), "residual_mm": r}
                            for k, (T, r) in segments.items()},
               "param_names": scene.param_names, "params": p, **part,
-              "newton_iterations": stats.newton_iterations,
+              "iterations": stats.iterations,
               "warnings": warnings + stats.warnings, "timings_s": timings}
     title = f"{report['case']}: the prediction against the outcome"
     if comm.rank == 0:

@@ -42,11 +42,18 @@ def mandible_only():
 
 
 @pytest.fixture(scope="session")
-def mandible_scene(tiny_anatomy):
-    """class3/tiny with the six mandible motions only."""
+def _mandible_session(tiny_anatomy):
     scene = _mandible_only(tiny_anatomy)
     scene.case, scene.resolution = "class3", "tiny"
     return scene
+
+
+@pytest.fixture
+def mandible_scene(_mandible_session):
+    """class3/tiny with the six mandible motions only (built once per session); back at rest
+    after each test, also when it fails (free where it is at rest)."""
+    yield _mandible_session
+    _mandible_session.solve(np.zeros(6))
 
 
 @pytest.fixture(scope="session")
@@ -57,7 +64,7 @@ def _tight_scenes(tiny_anatomy):
     def get(contact, material="homogeneous"):
         key = (contact, material)
         if key not in scenes:
-            scenes[key] = _mandible_only(tiny_anatomy, newton=TIGHT, contact=contact,
+            scenes[key] = _mandible_only(tiny_anatomy, equilibrium=TIGHT, contact=contact,
                                          material=material)
             scenes[key].case, scenes[key].resolution = "class3", "tiny"
         return scenes[key]

@@ -49,7 +49,7 @@ def _scene(block, contact, **kw):
     from inverse.treatment import rigid_treatment
 
     return Scene(block, rigid_treatment(("mandible",), ("lateral_mm", "vertical_mm")),
-                 contact=contact, newton=dict(method="newton", xtol=1e-10, frtol=1e-10), **kw)
+                 contact=contact, equilibrium=dict(method="newton", xtol=1e-10, frtol=1e-10), **kw)
 
 
 def test_plate_moved_along_itself_leaves_a_sliding_block_at_rest():

@@ -30,21 +30,51 @@ def test_forward_within_bounds_converges_or_says_why(mandible_scene, frac):
     scene.solve(np.zeros(6))
 
 
-@FUZZ
-@given(st.dictionaries(st.sampled_from(["Pg", "Li", "Ls", "Me", "Chin", ""]),
-                       st.one_of(st.lists(st.floats(allow_nan=True, allow_infinity=True),
-                                          min_size=0, max_size=4), st.text(max_size=3)),
-                       max_size=4))
-def test_target_validation_accepts_or_raises_input_error(mandible_scene, targets):
+#: The landmarks of the fuzzed target sets.
+LANDMARKS = ["Pg", "Li", "Ls", "Me"]
+#: One defect each: (landmark, value, whether the value is an offset from its rest position);
+#: ``None``: every entry removed.
+DEFECTS = [("Chin", [0.0, 0.0, 0.0], False),            # no such landmark
+           ("Pg", [float("nan"), 0.0, 0.0], False), ("Li", [0.0, float("inf"), 0.0], False),
+           ("Ls", [1.0, 2.0], False), ("Me", [1.0, 2.0, 3.0, 4.0], False), ("Pg", "abc", False),
+           ("Li", [], False), ("Ls", [[1.0, 2.0, 3.0]], False),
+           ("Me", [0.0, 0.0, 150.0], True),              # beyond ABSURD_TARGET_MM
+           None]
+
+
+def _offsets():
+    """{landmark: (3,) mm from its rest position}, within 40 mm (beyond 30 mm a warning)."""
+    vec = st.lists(st.floats(-23.0, 23.0), min_size=3, max_size=3)
+    return st.dictionaries(st.sampled_from(LANDMARKS), vec, min_size=1, max_size=4)
+
+
+@pytest.mark.parametrize("defects", [[False], DEFECTS], ids=["valid", "one-defect"])
+@settings(max_examples=20, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_target_validation_accepts_valid_and_names_each_defect(mandible_scene, defects, data):
+    """As many valid target sets as defective ones: valid targets (offsets from rest, the
+    far ones with a warning) are taken as given; a set with one of `DEFECTS` raises
+    InputError, never anything else."""
     import warnings
 
+    offsets, defect = data.draw(_offsets()), data.draw(st.sampled_from(defects))
+    rest = mandible_scene.landmarks(rest=True)
+    targets = {n: (np.asarray(rest[n]) + v).tolist() for n, v in offsets.items()}
+    if defect is None:
+        targets = {}
+    elif defect:
+        name, value, relative = defect
+        targets[name] = (np.asarray(rest[name]) + value).tolist() if relative else value
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        try:
-            obj = mandible_scene.objective(targets)
-        except InputError:
+        if defect is not False:
+            with pytest.raises(InputError):
+                mandible_scene.objective(targets)
             return
-    assert np.all(np.isfinite(obj.targets)) and obj.n_points >= 1
+        obj = mandible_scene.objective(targets)
+    assert obj.n_points == len(targets)
+    np.testing.assert_allclose(obj.targets, [targets[n] for n in targets])
     assert np.isfinite(obj.value())
 
 
@@ -63,4 +93,3 @@ def test_plan_from_bad_starts_decreases_monotonically(mandible_scene, start):
     assert all(b <= a for a, b in zip(T, T[1:])), T
     assert T[-1] < 0.5 * T[0]
     assert np.all(np.isfinite(res.params))
-    scene.solve(np.zeros(6))

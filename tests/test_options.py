@@ -165,3 +165,15 @@ def test_a_solver_policy_out_of_range_is_refused(setting, value):
 
     with pytest.raises(InputError, match=f"SolverPolicy.{setting} must be"):
         dataclasses.replace(DEFAULT_POLICY, **{setting: value})
+
+
+def test_the_equilibrium_settings_under_their_former_name(mandible_only, tiny_anatomy):
+    """``Scene(newton=...)`` still configures the equilibrium (whichever method), as
+    ``equilibrium=`` does; both at once is a one-line error before anything is built."""
+    scene = mandible_only(tiny_anatomy, newton=dict(xtol=1e-4, method="qn"))
+    assert scene.eq.xtol == 1e-4 and scene.eq.method == "qn"
+    st = scene.solve(scene.param_vector({"mandible.advance_mm": 3.0}))
+    assert st.iterations == st.newton_iterations > 0, st
+    scene.eq.destroy()
+    with pytest.raises(InputError, match="give the equilibrium's settings once"):
+        mandible_only(tiny_anatomy, newton={}, equilibrium={})

@@ -15,7 +15,7 @@ SIM = [sys.executable, str(ROOT / "scripts" / "simulate.py"), "--case", "class3"
        "mandible.advance_mm,mandible.yaw_deg,maxilla_L.advance_mm,maxilla_R.advance_mm"]
 REPORT_KEYS = {"case", "resolution", "n_vertices", "n_cells", "n_ranks", "param_names",
                "params", "landmarks", "landmarks_rest", "active_goal_error_max_mm",
-               "newton_iterations", "converged", "timings_s"}
+               "iterations", "converged", "timings_s"}
 
 
 def _run(cmd, env=None, **kw):

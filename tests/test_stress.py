@@ -23,7 +23,7 @@ def _assert_sound(scene, st, goal_mm=GOAL_TOLERANCE_MM):
     assert np.all(np.isfinite(scene.eq.u_eq.array))
     assert st.min_det_F > 0 and scene.eq.min_det_F() > 0
     assert st.goal_error < goal_mm, st
-    assert st.newton_iterations <= 3 * scene.eq.max_it
+    assert st.iterations <= 3 * scene.eq.max_it
 
 
 @pytest.mark.parametrize("nu", [0.47, 0.49, 0.495, 0.499])
@@ -51,7 +51,7 @@ def test_penalty_stiffness_sweep(mandible_only, tiny_anatomy):
         st = scene.solve({"mandible.advance_mm": 5.0})
         _assert_sound(scene, st, goal_mm=1.0)
         assert st.factorisations == 1, st
-        its.append(st.newton_iterations)
+        its.append(st.iterations)
         gaps[f] = st.goal_error
         scene.eq.destroy()
     assert max(its) <= min(its) + 2, its
@@ -108,7 +108,6 @@ def test_unreachable_setback_reports_the_largest_step(mandible_scene):
     assert str(round(reached, 4)) in str(err.value)
     assert mandible_scene.eq.min_det_F() > 0
     assert np.all(np.isfinite(mandible_scene.eq.u_eq.array))
-    mandible_scene.solve(np.zeros(6))
 
 
 @pytest.mark.parametrize("motion,deg", [("pitch_deg", 15.0), ("roll_deg", 10.0)])
@@ -118,14 +117,13 @@ def test_large_rotations_reach_equilibrium(mandible_scene, motion, deg):
     mandible_scene.solve(np.zeros(6))
     st = mandible_scene.solve({f"mandible.{motion}": deg})
     _assert_sound(mandible_scene, st)
-    mandible_scene.solve(np.zeros(6))
 
 
 def test_resisted_goal_is_reported(mandible_only, tiny_anatomy, caplog):
     """With a soft penalty (k / 100) the bone stops ~0.25 mm short of its goal: the
     equilibrium is returned and the shortfall is logged, never silent."""
     scene = mandible_only(tiny_anatomy, penalty=DEFAULT_PENALTY / 100)
-    with caplog.at_level(logging.WARNING, logger="fem.equilibrium"):
+    with caplog.at_level(logging.WARNING, logger="fem"):
         st = scene.solve({"mandible.advance_mm": 5.0})
     assert GOAL_TOLERANCE_MM < st.goal_error < GOAL_FAILURE_MM
     assert any("tissue resists" in r.message for r in caplog.records)
@@ -149,7 +147,6 @@ def test_crushing_rotation_is_not_an_equilibrium(mandible_scene, monkeypatch):
     assert mandible_scene.active_goal_error() < 0.004
     assert mandible_scene.eq.min_det_F() > 0
     monkeypatch.undo()
-    mandible_scene.solve(np.zeros(6))
 
 
 @pytest.mark.parametrize("method, trial, advance", [("qn", "_slope", 10.0),
@@ -274,7 +271,6 @@ def test_failed_mumps_factorisation_is_redone(mandible_only, tiny_anatomy, mandi
     mandible_scene.solve(p)
     a, b = scene.landmarks(), mandible_scene.landmarks()
     assert max(np.abs(a[k] - b[k]).max() for k in a) < 1e-3   # the solver's accuracy
-    mandible_scene.solve(np.zeros(6))
     scene.eq.destroy()
 
 
@@ -289,7 +285,7 @@ def test_newton_takes_over_from_a_sound_quasi_newton_iterate(mandible_only, tiny
 
     from fem.policy import DEFAULT_POLICY
 
-    scene = mandible_only(tiny_anatomy, newton=dict(
+    scene = mandible_only(tiny_anatomy, equilibrium=dict(
         policy=dataclasses.replace(DEFAULT_POLICY, qn_bisections=0)))
     st = scene.eq.solve(scene.param_vector({"mandible.advance_mm": 20.0}), predict=False)
     assert st.continuation_steps == 0 and st.factorisations <= 20, st

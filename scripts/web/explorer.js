@@ -426,7 +426,7 @@ function showAnswer(r, label) {   // the answer's skin, coloured by the first-or
   state.answerLandmarks = true;
   if (state.bone) state.bone.exact = r.transforms;   // the segments' motions at p, exact
   updateLandmarks(state.lmNames.flatMap((n) => r.landmarks[n]));
-  status(`${label}: ${r.newton_iterations} iterations, ${r.seconds.toFixed(2)} s; ` +
+  status(`${label}: ${r.iterations} iterations, ${r.seconds.toFixed(2)} s; ` +
          `first-order error max ${r.first_order_error_max_mm.toFixed(3)} mm`);
   return requestFrame();
 }
