@@ -105,8 +105,10 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         material: Neo-Hookean soft tissue: one `NeoHookean` for all cells, or `Tissues`,
             one per tissue class, mixed per cell by the domain's ``tissues`` fractions.
         penalty: k, kPa/mm, weight of the active-vertex penalty per unit area.
-        solver: a key of `PRESETS`; any PETSc option can be overridden with
-            ``-<prefix>ksp_type ...`` on the command line or in ``options``.
+        solver: a key of `PRESETS`; any PETSc option can be overridden on the command line
+            under its object's prefix (``-<prefix>ksp_type ...``; quasi-Newton's SNES
+            ``<prefix>qn_``, the tangent KSP ``<prefix>tangent_``: docs/solver.md) or, for
+            whichever SNES runs and the shared KSP, in ``options`` (no prefix).
         method: a key of `METHODS`: ``qn`` (default; one factorisation serves many solves)
             or ``newton``.
         xtol: stop when a full step is below xtol (inf-norm, mm) and the residual is below

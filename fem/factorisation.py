@@ -18,6 +18,10 @@ from fem.policy import METHOD_DEFAULTS, METHODS, PRESETS
 log = logging.getLogger(__name__)
 
 
+#: The PETSc objects' options prefixes, after the equilibrium's own (``orthodiff_fwd_``):
+#: Newton's SNES and the shared KSP (its factorisation) take ``<prefix>``, each quasi-Newton
+#: SNES ``<prefix>qn_``, the tangent solves' KSP ``<prefix>tangent_`` (docs/solver.md).
+QN_PREFIX, TANGENT_PREFIX = "qn_", "tangent_"
 #: MUMPS errors (INFOG(1)) of a too small workspace (ICNTL(14) is then doubled).
 MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
 
@@ -54,8 +58,10 @@ class Factorisation:
 
     def _make_snes(self, prefix: str, solver: str, options: dict):
         """Newton's SNES, which owns the KSP (factorisation) that every solve shares; preset
-        options under ``prefix`` (the command line wins)."""
-        self._prefix = prefix
+        options under ``prefix`` (the command line wins). ``options`` (PETSc options without
+        a prefix) reach whichever SNES runs: Newton's here, each quasi-Newton one when made
+        (`_fresh_qn_snes`, under ``<prefix>qn_``)."""
+        self._prefix, self._options = prefix, dict(options)
         self._search = {"snes_linesearch_type": "bt", "snes_linesearch_max_it": 40,
                         "snes_max_linear_solve_fail": 1}
         settings = {**METHODS["newton"], **self._search, **PRESETS[solver], **options}
@@ -83,17 +89,18 @@ class Factorisation:
         for k, v in self._icntl.items():
             factor.setMumpsIcntl(k, v)
 
-    def _build_snes(self, settings: dict, max_it: int, ksp=None):
+    def _build_snes(self, settings: dict, max_it: int, ksp=None, prefix: str | None = None):
         """A SNES with our callbacks and line search checks, configured from ``settings``
-        (PETSc options under the prefix; the command line wins), which are removed from the
-        global database afterwards. ``ksp``: share this KSP and its factorisation, as set
-        up (its options are not read again)."""
+        (PETSc options under ``prefix``, default the equilibrium's; the command line wins),
+        which are removed from the global database afterwards. ``ksp``: share this KSP and
+        its factorisation, as set up (its options are not read again)."""
         opts = PETSc.Options()
+        prefix = self._prefix if prefix is None else prefix
         snes = PETSc.SNES().create(self.domain.comm)
-        snes.setOptionsPrefix(self._prefix)
-        mine = [k for k in settings if not opts.hasName(self._prefix + k)]
+        snes.setOptionsPrefix(prefix)
+        mine = [k for k in settings if not opts.hasName(prefix + k)]
         for k in mine:
-            opts[self._prefix + k] = settings[k]
+            opts[prefix + k] = settings[k]
         # late-bound callbacks: a test may replace a method on the instance
         snes.setFunction(lambda s, x, b: self._residual(s, x, b), self.b)
         snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
@@ -106,7 +113,7 @@ class Factorisation:
         if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
             snes.setKSP(ksp)
         for k in mine:
-            opts.delValue(self._prefix + k)
+            opts.delValue(prefix + k)
         return snes
 
     def _method_snes(self):
@@ -119,17 +126,19 @@ class Factorisation:
         return self._fresh_qn_snes(self.max_it)
 
     def _fresh_qn_snes(self, max_it: int):
-        """A new quasi-Newton SNES on the shared KSP (the previous one destroyed)."""
+        """A new quasi-Newton SNES on the shared KSP (the previous one destroyed), its
+        options under ``<prefix>qn_`` (`QN_PREFIX`), the API's ``options`` with them."""
         self._drop_qn_snes()
         self._relaxing = False   # set by relax() on its own
-        self._qn_snes = self._build_snes({**self._search, **METHODS["qn"]}, max_it, self.ksp)
+        self._qn_snes = self._build_snes({**self._search, **METHODS["qn"], **self._options},
+                                         max_it, self.ksp, self._prefix + QN_PREFIX)
         return self._qn_snes
 
     def _make_tangent_ksp(self, prefix: str):
         """CG on K at the equilibrium, preconditioned by the kept factorisation (or GAMG
         hierarchy) of the forward solves; `solve_tangent` decides when to rebuild it."""
         ksp = PETSc.KSP().create(self.domain.comm)
-        ksp.setOptionsPrefix(prefix + "tangent_")
+        ksp.setOptionsPrefix(prefix + TANGENT_PREFIX)
         ksp.setType("cg")
         ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
         ksp.setTolerances(rtol=1e-11, atol=1e-30, max_it=200)

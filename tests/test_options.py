@@ -177,3 +177,31 @@ def test_the_equilibrium_settings_under_their_former_name(mandible_only, tiny_an
     scene.eq.destroy()
     with pytest.raises(InputError, match="give the equilibrium's settings once"):
         mandible_only(tiny_anatomy, newton={}, equilibrium={})
+
+
+def test_options_reach_whichever_snes_runs_under_one_prefix_each(mandible_only, tiny_anatomy):
+    """The API's PETSc ``options`` reach the quasi-Newton SNES (the default method) as well
+    as Newton's; each PETSc object has its own prefix, and the command line reaches
+    quasi-Newton's under ``<prefix>qn_`` without touching Newton's."""
+    from petsc4py import PETSc
+
+    stol = 1.25e-9   # unused by our convergence test: harmless, and visible on the SNES
+    scene = mandible_only(tiny_anatomy, options={"snes_stol": stol})
+    eq = scene.eq
+    scene.solve(scene.param_vector({"mandible.advance_mm": 2.0}))
+    assert eq._qn_snes.getType() == "qn" and eq._qn_snes.getTolerances()[2] == stol
+    assert eq._newton_snes.getTolerances()[2] == stol
+    prefixes = {eq._newton_snes.getOptionsPrefix(), eq._qn_snes.getOptionsPrefix(),
+                eq.tangent_ksp.getOptionsPrefix()}
+    assert prefixes == {"orthodiff_fwd_", "orthodiff_fwd_qn_", "orthodiff_fwd_tangent_"}
+    eq.destroy()
+    opts = PETSc.Options()
+    opts["orthodiff_fwd_qn_snes_stol"] = 2 * stol
+    try:
+        scene = mandible_only(tiny_anatomy)
+        scene.solve(scene.param_vector({"mandible.advance_mm": 2.0}))
+        assert scene.eq._qn_snes.getTolerances()[2] == 2 * stol
+        assert scene.eq._newton_snes.getTolerances()[2] != 2 * stol
+        scene.eq.destroy()
+    finally:
+        opts.delValue("orthodiff_fwd_qn_snes_stol")
