@@ -9,7 +9,7 @@ DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py pyth
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: demo explore test install bench lint clean
+.PHONY: demo explore test check install bench lint clean
 
 WEB := scripts/web
 
@@ -50,9 +50,15 @@ explore: install
 	@test -f $(PLAN) || $(PY) scripts/demo.py
 	$(PY) scripts/explore_web.py --plan-report $(PLAN)
 
+# Every tier (tests/conftest.py): unit, integration on the tiny heads, scripts, browser.
 test: install
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
+
+# The unit tier alone (each part on a cube or a block, no head: under a minute).
+check: install
+	$(PY) -m ruff check .
+	$(PY) -m pytest -q -m unit
 
 bench: install
 	$(PY) scripts/bench.py forward

@@ -40,6 +40,7 @@ from __future__ import annotations
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import contextlib
 import time
 
 import dolfinx
@@ -263,6 +264,19 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
                        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.25] * 3], dtype=float)
         self._det_F = compat.eval_expression(ufl.det(F), pts, domain.mesh)
         self.setup_time = time.perf_counter() - t0
+
+    def set_xtol(self, xtol: float) -> None:
+        """The step tolerance (mm) of the next solves, validated (`fem.limits`)."""
+        self.xtol = check("xtol", xtol)
+
+    @contextlib.contextmanager
+    def keeping_xtol(self):
+        """A block after which the step tolerance is back as it was (a plan tightens it)."""
+        xtol = self.xtol
+        try:
+            yield
+        finally:
+            self.xtol = xtol
 
     def _lame(self, material):
         """UFL (mu, lmbda), kPa: constants for one material, DG0 fields for `Tissues`."""

@@ -7,7 +7,8 @@ values where it takes them and raises the same `InputError`.
 Why a run stays bounded: every solver loop counts iterations against a ceiling below (SNES
 ``max_it`` ≤ `MAX_SNES_ITERATIONS`; at most `MAX_BISECTIONS` continuation bisections, 3
 stall refreshes and 4 diagonal-shift retries per solve; a plan ≤ `MAX_PLAN_ITERATIONS`
-Gauss-Newton iterations of at most 6 × 9 line-search trials), and no tolerance can be
+Gauss-Newton iterations of at most 6 × (`MAX_BACKTRACKS` + 1) line-search trials), and no
+tolerance can be
 tightened below its floor (`XTOL_FLOOR_MM`: a plan's forward xtol, ``ftol`` × the mean
 landmark distance, is floored there when the targets are reached; `FRTOL_FLOOR` for the
 residual).
@@ -37,6 +38,8 @@ MAX_SNES_ITERATIONS = 1000
 MAX_BISECTIONS = 20
 #: Most Gauss-Newton iterations of a plan (plans converge in 2-8).
 MAX_PLAN_ITERATIONS = 1000
+#: Most halvings of a Gauss-Newton step in one line search (default 8).
+MAX_BACKTRACKS = 30
 #: An equilibrium whose smallest volume ratio det F is below this is reported: "tissue
 #: compressed to N %". Moves within the bounds kept det F >= 0.61 (stress table, 14 mm
 #: advance: coarse 0.61, medium 0.63); a 20 mm advance (beyond the 15 mm bound) fell to 0.50
@@ -81,6 +84,13 @@ OPTIONS = {
     "xtol": Range(XTOL_FLOOR_MM, 100.0),                        # mm
     "max_it": Range(1, MAX_SNES_ITERATIONS, integer=True),
     "max_bisections": Range(0, MAX_BISECTIONS, integer=True),
+    # a plan's (`inverse.planner.PlanOptions`)
+    "gtol": Range(0.0, 1e6),                                    # mm² per unit
+    "step_tol": Range(0.0, 100.0),                              # units (mm, degrees)
+    "mu": Range(0.0, 1e6),                                      # relative to diag(H)
+    "armijo": Range(0.0, 0.5, open_lo=True, open_hi=True),
+    "max_backtracks": Range(0, MAX_BACKTRACKS, integer=True),
+    "max_step": Range(0.0, 1e3, open_lo=True),                  # mm or degrees
 }
 
 

@@ -35,9 +35,46 @@ from meshes.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
 
+#: How the landmark Jacobian is made (`inverse.objective.Objective.jacobian`).
+MODES = ("auto", "direct", "adjoint")
 #: Line-search trials with a step fraction above this are solved by quasi-Newton alone: a
 #: trial it cannot solve is shortened (at paper size, Newton spent 200 s on one such trial).
 QUICK_ALPHA = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanOptions:
+    """How `gauss_newton` plans; validated where made (`fem.limits`, one-line `InputError`).
+
+    Attributes:
+        max_iterations: Gauss-Newton iterations at most.
+        gtol: stop when the projected gradient is below it (mm² per unit);
+        ftol: ... when T decreases by less than this, relative (also the forward solves'
+            accuracy, ftol x the mean landmark distance);
+        xtol: ... when a step is below it (units: mm, degrees).
+        mu: initial Marquardt damping, relative to diag(H).
+        armijo: sufficient decrease of the line search; max_backtracks: its halvings.
+        max_step: trust region, the largest step in any parameter (mm or degrees).
+        mode: landmark Jacobian by "direct" sensitivities, "adjoint" solves or "auto".
+    """
+
+    max_iterations: int = 20
+    gtol: float = 1e-9
+    ftol: float = FTOL
+    xtol: float = 1e-7
+    mu: float = 1e-9
+    armijo: float = 1e-4
+    max_backtracks: int = 8
+    max_step: float = 10.0
+    mode: str = "auto"
+
+    def __post_init__(self):
+        for name in ("max_iterations", "gtol", "ftol", "mu", "armijo", "max_backtracks",
+                     "max_step"):
+            object.__setattr__(self, name, check(name, getattr(self, name)))
+        object.__setattr__(self, "xtol", check("step_tol", self.xtol, "xtol"))
+        if self.mode not in MODES:
+            raise InputError(f"mode must be one of {list(MODES)}, got {self.mode!r}")
 
 
 @dataclasses.dataclass
@@ -104,41 +141,38 @@ def predicted_decrease(S, weights3, g, tikhonov, dp) -> float:
     return -float(g @ dp + 0.5 * (Sd @ (weights3 * Sd) + tikhonov * dp @ dp))
 
 
-def gauss_newton(scene, objective: Objective, p0=None, bounds=None, max_iterations: int = 20,
-                 gtol: float = 1e-9, ftol: float = FTOL, xtol: float = 1e-7,
-                 mu: float = 1e-9, armijo: float = 1e-4, max_backtracks: int = 8,
-                 max_step: float = 10.0, mode: str = "auto", callback=None) -> PlanResult:
-    """Minimise ``objective`` over the scene's parameters from ``p0`` (default 0).
+def gauss_newton(scene, objective: Objective, p0=None, bounds=None,
+                 options: PlanOptions | None = None, callback=None, **kw) -> PlanResult:
+    """Minimise ``objective`` over the scene's parameters from ``p0`` (default 0), within
+    ``bounds`` (Np, 2) (default the treatment's).
 
-    Stops when the projected gradient is below ``gtol`` (mm² per unit), T decreases by less
-    than ``ftol`` relative, the step is below ``xtol`` (units), or T < 1e-14 mm². A step
-    is at most ``max_step`` (mm or degrees) in any parameter. The forward solves stop at
-    the equilibrium's own xtol or ``ftol`` x the mean landmark distance, whichever is
-    smaller: their landmark error stays below the relative change of T the plan resolves,
-    and a resumed plan follows the same path.
+    ``options``: a `PlanOptions`, or its fields as keywords ``kw`` (not both). Stops when
+    the projected gradient is below ``gtol``, T decreases by less than ``ftol`` relative,
+    the step is below ``xtol``, or T < 1e-14 mm². The forward solves stop at the
+    equilibrium's own xtol or ``ftol`` x the mean landmark distance, whichever is smaller:
+    their landmark error stays below the relative change of T the plan resolves, and a
+    resumed plan follows the same path; the equilibrium's xtol is back as it was afterwards.
     ``callback(p, entry)`` is called at the start and after every accepted iteration with
     its history entry.
     """
-    ftol = check("ftol", ftol)
-    max_iterations = check("max_iterations", max_iterations)
-    xtol_forward = scene.eq.xtol
-    try:
-        return _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol,
-                             mu, armijo, max_backtracks, max_step, mode, callback)
-    finally:
-        scene.eq.xtol = xtol_forward
+    if options is not None and kw:
+        raise InputError(f"give the plan's options once: a PlanOptions or keywords "
+                         f"({sorted(kw)}), not both")
+    opts = options if options is not None else PlanOptions(**kw)
+    with scene.eq.keeping_xtol():
+        return _gauss_newton(scene, objective, p0, bounds, opts, callback)
 
 
-def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol, mu, armijo,
-                  max_backtracks, max_step, mode, callback):
+def _gauss_newton(scene, objective, p0, bounds, opts: PlanOptions, callback):
     t_start = time.perf_counter()
     eq = scene.eq
     xtol_forward = eq.xtol
+    ftol, mu, mode = opts.ftol, opts.mu, opts.mode
 
     def tighten(distance_mm: float):
         """Forward solves to ftol x the mean landmark distance (or their own xtol), not
         below `fem.limits.XTOL_FLOOR_MM` (targets reached: a distance of 0)."""
-        eq.xtol = max(min(xtol_forward, ftol * distance_mm), XTOL_FLOOR_MM)
+        eq.set_xtol(max(min(xtol_forward, ftol * distance_mm), XTOL_FLOOR_MM))
     n_p = eq.n_params
     p = np.zeros(n_p) if p0 is None else scene.param_vector(p0)
     p_init = p.copy()
@@ -170,7 +204,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
     if callback is not None:
         callback(p.copy(), history[-1])
     converged, reason, it = False, "iteration limit", 0
-    for it in range(1, max_iterations + 1):
+    for it in range(1, opts.max_iterations + 1):
         if T < 1e-14:
             converged, reason, it = True, "objective below 1e-14 mm²", it - 1
             break
@@ -180,7 +214,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         r = objective.residual().ravel()
         g = S.T @ (w3 * r) + objective.tikhonov * p
         free = ~(((p <= lo) & (g > 0)) | ((p >= hi) & (g < 0)))
-        if np.max(np.abs(g[free]), initial=0.0) <= gtol:
+        if np.max(np.abs(g[free]), initial=0.0) <= opts.gtol:
             converged, reason, it = True, "projected gradient below gtol", it - 1
             break
         tighten(history[-1]["mean_distance_mm"])
@@ -191,9 +225,9 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         base = eq.snapshot()
         accepted, its = False, 0
         for _ in range(6):   # raise the damping until a step is accepted
-            dp *= min(1.0, max_step / max(np.max(np.abs(dp)), 1e-300))  # trust region
+            dp *= min(1.0, opts.max_step / max(np.max(np.abs(dp)), 1e-300))  # trust region
             alpha = 1.0
-            for _ in range(max_backtracks + 1):
+            for _ in range(opts.max_backtracks + 1):
                 q = np.clip(p + alpha * dp, lo, hi)
                 try:   # long trials may be cut short: quasi-Newton only, no fallback
                     its += forward(q, "line_search", quick=alpha > QUICK_ALPHA)
@@ -201,7 +235,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
                 except SolverError as e:
                     log.info("trial p = %s failed: %s", np.round(q, 4).tolist(), e)
                     T_q = np.inf
-                if T_q <= T + armijo * float(g @ (q - p)):
+                if T_q <= T + opts.armijo * float(g @ (q - p)):
                     accepted = True
                     break
                 alpha *= 0.5
@@ -229,7 +263,7 @@ def _gauss_newton(scene, objective, p0, bounds, max_iterations, gtol, ftol, xtol
         if T_prev - T <= ftol * T_prev:
             converged, reason = True, "relative decrease below ftol"
             break
-        if step <= xtol:
+        if step <= opts.xtol:
             converged, reason = True, "step below xtol"
             break
     timings["total"] = time.perf_counter() - t_start

@@ -93,7 +93,7 @@ def _lm(scene, obj):
     from inverse.treatment import FTOL
 
     eq = scene.eq
-    eq.xtol = LM_XTOL
+    eq.set_xtol(LM_XTOL)
     lo, hi = scene.treatment.bounds.T
     a = np.sqrt(obj.tikhonov)
     w = np.sqrt(np.repeat(obj.weights, 3))

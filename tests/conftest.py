@@ -1,4 +1,18 @@
-"""Shared fixtures: tiny synthetic scenes, built once per session (dolfinx conftest habits)."""
+"""Shared fixtures: tiny synthetic scenes, built once per session (dolfinx conftest habits);
+the test tiers.
+
+Every test belongs to one tier, a marker (``pytest -m unit``; ``make check`` runs the unit
+tier, ``make test`` all of them):
+
+* ``unit``: one part on its own (a unit cube, a block, a function): seconds, no head;
+* ``integration``: the engine and the planner on the tiny synthetic heads, in this process;
+* ``scripts``: the scripts as a user chains them, in fresh processes (the CTs among them);
+* ``browser``: the explorer's page in headless Chromium.
+
+A test's tier is its own marker, else its module's ``TIER``, else ``integration`` where it
+uses a tiny head (the ``tiny_anatomy`` fixture, directly or not) and ``unit`` where it does
+not. ``mpi`` (runs ``mpirun -n 2`` itself) is marked besides the tier.
+"""
 
 from mpi4py import MPI
 
@@ -6,6 +20,22 @@ import gc
 
 import numpy as np
 import pytest
+
+TIERS = ("unit", "integration", "scripts", "browser")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Give each test its tier marker (module docstring)."""
+    for item in items:
+        own = [m.name for m in item.own_markers if m.name in TIERS]
+        if len(own) > 1:
+            raise pytest.UsageError(f"{item.nodeid}: more than one tier {own}")
+        tier = own[0] if own else getattr(item.module, "TIER", None) or (
+            "integration" if "tiny_anatomy" in item.fixturenames else "unit")
+        if tier not in TIERS:
+            raise pytest.UsageError(f"{item.nodeid}: unknown tier {tier!r}")
+        if not own:
+            item.add_marker(tier)
 
 
 @pytest.fixture(autouse=True)

@@ -2,6 +2,7 @@
 against the closed-form answer, and the teeth label of the synthetic heads."""
 
 import numpy as np
+import pytest
 
 from meshes.anatomy import FIXED, SKIN, TEETH_OFFSET, Anatomy, boundary_facets
 
@@ -107,6 +108,7 @@ def test_plate_pushed_into_a_confined_block_matches_the_closed_form():
     assert errors[-1].max() < 1e-4, errors
 
 
+@pytest.mark.scripts
 def test_contact_option_of_the_scripts(tmp_path, tiny_anatomy):
     """simulate.py: a synthetic head's lips are glued to the teeth by default (a CT scene's
     slide: test_ct), ``--contact sliding`` lets them slide (a LeFort I advance then drags

@@ -12,6 +12,9 @@ from test_scripts import ROOT, _mpirun, _one_line_error, _run
 
 from scripts._common import CRANIUM_CT, HEADSQ_CT
 
+#: The tests' tier (conftest.py): CTs to scenes through the scripts.
+TIER = "scripts"
+
 CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
 SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]
 PLAN = [sys.executable, str(ROOT / "scripts" / "plan.py")]
@@ -170,6 +173,7 @@ def test_ct_scene_is_deterministic_and_cached(tmp_path, cache):
         assert x.landmark_positions().keys() == a.landmark_positions().keys()
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd", ".mhd"])
 def test_volume_formats_read_back_in_the_scene_frame(tmp_path, suffix):
     """NIfTI, NRRD and MetaImage (SimpleITK) give back the same voxels, spacing and origin in
@@ -185,6 +189,7 @@ def test_volume_formats_read_back_in_the_scene_frame(tmp_path, suffix):
     np.testing.assert_allclose(w.origin, v.origin, atol=1e-4)
 
 
+@pytest.mark.unit
 def test_a_cbcts_fine_voxels_are_averaged_in_blocks():
     """Voxels finer than half of WORK_VOXEL_MM become block means (HU) or the block's middle
     label, each at its block's centre, so a position keeps its value; coarser ones stay."""
@@ -246,6 +251,7 @@ def _write_dicom_series(v, folder: Path) -> None:
         writer.Execute(sl)
 
 
+@pytest.mark.unit
 def test_dicom_series_folder_reads_back_in_the_scene_frame(tmp_path):
     """A DICOM series (a folder, as a scanner or PACS exports it) gives back the voxels,
     spacing and origin of the volume written, in the scene's frame."""

@@ -15,6 +15,9 @@ from test_scripts import ROOT, _mpirun, _run
 import scripts._launch as launch
 from scripts._launch import chromium, explorer, request, set_params, wait_ready
 
+#: The tests' tier (conftest.py): the explorer's server and scripts.
+TIER = "scripts"
+
 CASE = ["--case", "class3", "--resolution", "tiny"]
 EXPLORE = [str(ROOT / "scripts" / "explore.py"), *CASE]
 SIMULATE = [str(ROOT / "scripts" / "simulate.py"), *CASE]
@@ -243,6 +246,7 @@ def cranium_scene(tmp_path_factory):
     return out / "scene.vtu"
 
 
+@pytest.mark.browser
 @pytest.mark.parametrize("which", ["synthetic", "cranium"])
 def test_the_page_in_headless_chromium(request, tmp_path, which):
     """Real Chromium (SwiftShader WebGL), on the synthetic head and on the Cranium CT's

@@ -7,6 +7,9 @@ import numpy as np
 import pytest
 from test_ct import CRANIUM, CT_SCENE, EXAMPLES, HEADSQ, PLAN, SIMULATE, _run, needs_cranium
 
+#: The tests' tier (conftest.py): tilted CTs through the scripts.
+TIER = "scripts"
+
 #: Tilts (degrees: pitch about x, roll about y, yaw about z; R = Rz Ry Rx, the treatment's
 #: convention) of up to 10 degrees about each axis. The bone's symmetry finds yaw and roll;
 #: pitch needs the Frankfort horizontal: the ear canals and orbits found on the CT, or given
@@ -48,6 +51,7 @@ def _tilted_points(M) -> dict:
 
 
 # ---------------------------------------------------------------- given frames
+@pytest.mark.unit
 def test_frame_from_clinical_points_is_the_tilt():
     """Points of a head tilted by M give the frame M (head -> scene), with the porions'
     midpoint as the origin, and the tilt angles back."""
@@ -62,6 +66,7 @@ def test_frame_from_clinical_points_is_the_tilt():
     assert np.allclose(from_points(HEAD_POINTS).matrix, np.eye(4))
 
 
+@pytest.mark.unit
 def test_frame_forms_agree(tmp_path):
     """The same frame from points in the file, from a 3D Slicer markups file (RAS), from two
     planes and from its 4×4."""
@@ -113,6 +118,7 @@ def test_bad_frame_gets_one_line_and_writes_nothing(tmp_path, case):
     assert not out.exists()
 
 
+@pytest.mark.integration
 def test_treatment_axes_are_the_head_frames(tiny_anatomy):
     """In a tilted head frame, an advance moves a segment along the head's anterior axis and
     a pitch turns it about the head's left axis (through the pivot): the exact motions and
@@ -178,6 +184,7 @@ def _head_ct(M, voxel: float = 2.0, ears_and_orbits: bool = False):
                   np.full(3, voxel), lo, "tilted class1")
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("angles", [(0.0, 0.0, 0.0)] + YAW_ROLL + PITCHED)
 def test_estimated_frame_of_a_tilted_synthetic_head(angles):
     """The synthetic head with ear canals and orbits (its FH known: z = 9), tilted by up to
@@ -198,6 +205,7 @@ def test_estimated_frame_of_a_tilted_synthetic_head(angles):
         assert abs(head[2] - fh) < v.spacing[2] / 2, (name, head)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("angles", YAW_ROLL)
 def test_estimated_frame_without_ears_assumes_the_axial_plane(angles, caplog):
     """Without ear canals and orbits the FH is the scan's axial plane, and a warning names
@@ -227,6 +235,7 @@ def cranium_frame():
     return v, centre, estimate(v, seg.labels_from_ct(v)[1], seg.BONE_HU)
 
 
+@pytest.mark.integration
 @needs_cranium
 @pytest.mark.parametrize("angles", YAW_ROLL[:2] + PITCHED + [(10.0, 0.0, 0.0)])
 def test_estimated_frame_of_a_tilted_cranium(angles, cranium_frame):
@@ -252,6 +261,7 @@ def test_estimated_frame_of_a_tilted_cranium(angles, cranium_frame):
     assert _angle_deg(f1.rotation, R @ f0.rotation) < 1.0, (f0.tilt_deg(), f1.tilt_deg())
 
 
+@pytest.mark.integration
 @pytest.mark.skipif(not HEADSQ.exists(), reason=f"{HEADSQ} is absent")
 def test_estimated_frame_of_headsq():
     """headsq's 3.2 mm voxels lose the bony ear canals: its MSP is estimated (halfway

@@ -8,6 +8,9 @@ from hypothesis import strategies as st
 
 from meshes.errors import InputError, SolverError
 
+#: The tests' tier (conftest.py): fuzzing the tiny heads.
+TIER = "integration"
+
 FUZZ = settings(max_examples=8, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
 

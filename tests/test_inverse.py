@@ -9,6 +9,9 @@ from fem.verification import taylor_test
 from inverse.planner import reduced_step
 from meshes.errors import InputError
 
+#: The tests' tier (conftest.py): planning on the tiny heads.
+TIER = "integration"
+
 
 @pytest.fixture
 def scene(tight_scene):
@@ -162,9 +165,9 @@ def test_plan_recovers_known_parameters(case, subset, names, seed):
     assert n_p <= 3 * len(names)
     rng = np.random.default_rng(seed)
     p_star = rng.uniform(-4, 4, n_p)
-    scene.eq.xtol, xtol = 1e-9, scene.eq.xtol   # exactly reachable targets
-    scene.solve(p_star)
-    scene.eq.xtol = xtol
+    with scene.eq.keeping_xtol():   # exactly reachable targets
+        scene.eq.set_xtol(1e-9)
+        scene.solve(p_star)
     targets = {k: v.tolist() for k, v in scene.landmarks(names).items()}
     scene.solve(np.zeros(n_p))
     res = scene.plan(targets, tikhonov=0.0, ftol=1e-6)

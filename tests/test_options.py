@@ -12,6 +12,9 @@ from test_scripts import PLAN, ROOT, SIM, _run
 
 from meshes.errors import InputError
 
+#: The tests' tier (conftest.py): options at the scripts' edge.
+TIER = "scripts"
+
 EXPLORE = [sys.executable, str(ROOT / "scripts" / "explore.py"), "--case", "class3",
            "--resolution", "tiny"]
 SCRIPTS = {"plan": PLAN, "sim": SIM, "explore": EXPLORE}
@@ -81,6 +84,7 @@ def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path)
         assert w in r.stderr
 
 
+@pytest.mark.unit
 def test_port_range():
     """Ports (the explorer's server) in [0, 65535], integers (0: any free port):
     `fem.limits.check` and so `check_options` for any script's ``--port``."""
@@ -93,6 +97,7 @@ def test_port_range():
             check("port", bad, "--port")
 
 
+@pytest.mark.integration
 def test_the_python_api_refuses_the_same_values(mandible_scene):
     from inverse.explore import SkinPredictor
     from inverse.planner import gauss_newton
@@ -152,6 +157,7 @@ def test_no_option_makes_a_run_unbounded(script, data):
         assert len(errors) == 1, (args, r.stderr[-2000:])
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("setting, value", [
     ("max_halvings", 0), ("stall_its", 2.5), ("stall_ratio", 0.0), ("rate_max", 1.0),
     ("qn_bisections", True), ("tangent_lag_its", -1), ("path_substep_mm", float("nan")),
@@ -167,6 +173,7 @@ def test_a_solver_policy_out_of_range_is_refused(setting, value):
         dataclasses.replace(DEFAULT_POLICY, **{setting: value})
 
 
+@pytest.mark.integration
 def test_the_equilibrium_settings_under_their_former_name(mandible_only, tiny_anatomy):
     """``Scene(newton=...)`` still configures the equilibrium (whichever method), as
     ``equilibrium=`` does; both at once is a one-line error before anything is built."""
@@ -179,6 +186,7 @@ def test_the_equilibrium_settings_under_their_former_name(mandible_only, tiny_an
         mandible_only(tiny_anatomy, newton={}, equilibrium={})
 
 
+@pytest.mark.integration
 def test_options_reach_whichever_snes_runs_under_one_prefix_each(mandible_only, tiny_anatomy):
     """The API's PETSc ``options`` reach the quasi-Newton SNES (the default method) as well
     as Newton's; each PETSc object has its own prefix, and the command line reaches
@@ -205,3 +213,27 @@ def test_options_reach_whichever_snes_runs_under_one_prefix_each(mandible_only, 
         scene.eq.destroy()
     finally:
         opts.delValue("orthodiff_fwd_qn_snes_stol")
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("bad, match", [
+    (dict(armijo=0.5), "armijo must be a finite number in (0, 0.5)"),
+    (dict(max_backtracks=2.5), "max_backtracks must be an integer"),
+    (dict(max_step=0.0), "max_step must be"), (dict(gtol=float("nan")), "gtol must be"),
+    (dict(xtol=-1.0), "xtol must be"), (dict(ftol=1.0), "ftol must be"),
+    (dict(mode="newton"), "mode must be one of"), (dict(max_iterations=0), "max_iterations")])
+def test_plan_options_are_validated_where_they_are_made(bad, match):
+    """`PlanOptions` checks each field through `fem.limits` when made, one line each; it is
+    frozen, and `gauss_newton` takes it or its fields as keywords, not both."""
+    import dataclasses
+
+    from inverse.planner import PlanOptions, gauss_newton
+
+    with pytest.raises(InputError, match=match.replace("(", r"\(").replace(")", r"\)")):
+        PlanOptions(**bad)
+    opts = PlanOptions(ftol=1e-4, max_iterations=3)
+    assert opts.max_iterations == 3 and isinstance(opts.max_iterations, int)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        opts.ftol = 0.1
+    with pytest.raises(InputError, match="give the plan's options once"):
+        gauss_newton(None, None, options=opts, ftol=1e-3)

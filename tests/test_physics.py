@@ -5,6 +5,9 @@ import pytest
 
 from fem import compat
 
+#: The tests' tier (conftest.py): the equilibrium on the tiny heads.
+TIER = "integration"
+
 
 def _residual(eq, u_array):
     eq.u.x.array[:] = u_array

@@ -29,6 +29,9 @@ from test_validate import (
     own_distances,
 )
 
+#: The tests' tier (conftest.py): post-operative CTs through the scripts.
+TIER = "scripts"
+
 #: The true movements of the synthetic head (both jaws; Cranium's: test_validate's LeFort I).
 P_SYNTHETIC = {"mandible.advance_mm": 5.0, "mandible.yaw_deg": 2.0, "maxilla.advance_mm": 2.0}
 #: The post-operative CT's noise (HU, Gaussian SD): a CT's in soft tissue is 10-30.

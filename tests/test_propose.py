@@ -20,6 +20,9 @@ from test_ct import (
 from test_frame import PITCHED, _rotation
 from test_scripts import _one_line_error, _run
 
+#: The tests' tier (conftest.py): proposed osteotomies through the scripts.
+TIER = "scripts"
+
 #: Each proposed plane lies within this angle (degrees) and distance (mm, the hand-made plane's
 #: distance from the proposed plane's point, which lies on the anatomy) of the hand-made
 #: file's (the issue's bound).

@@ -9,6 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+#: The tests' tier (conftest.py): the scripts in fresh processes.
+TIER = "scripts"
+
 ROOT = Path(__file__).resolve().parents[1]
 SIM = [sys.executable, str(ROOT / "scripts" / "simulate.py"), "--case", "class3",
        "--resolution", "tiny", "--params-used",

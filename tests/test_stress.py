@@ -12,6 +12,9 @@ from fem.policy import DEFAULT_POLICY
 from meshes.anatomy import SLIVER_QUALITY, signed_volumes, tet_quality
 from meshes.errors import SolverError
 
+#: The tests' tier (conftest.py): the solver's safeguards on the tiny heads.
+TIER = "integration"
+
 GOAL_FAILURE_MM = DEFAULT_POLICY.goal_failure_mm
 GOAL_TOLERANCE_MM = DEFAULT_POLICY.goal_tolerance_mm
 

@@ -149,6 +149,7 @@ def test_anatomy_files_keep_tissues(tmp_path, tiny_anatomy):
         bad.validate()
 
 
+@pytest.mark.scripts
 def test_material_option_of_the_scripts(tmp_path, tiny_anatomy):
     """simulate.py: the synthetic heads are homogeneous by default, ``--material tissues``
     is reported and changes the answer; a mesh without tissue classes, or a material file

@@ -18,6 +18,9 @@ from test_ct import (
 )
 from test_scripts import ROOT, _mpirun, _one_line_error, _run
 
+#: The tests' tier (conftest.py): validation through the scripts.
+TIER = "scripts"
+
 VALIDATE = [sys.executable, str(ROOT / "scripts" / "validate.py")]
 CASE = ["--case", "class3-asym", "--resolution", "coarse"]
 #: The true movements (class3-asym; Cranium, a LeFort I), and the scan's misplacement:
@@ -254,6 +257,7 @@ def test_bad_scan_gets_one_line_and_writes_nothing(tmp_path, truth, case):
     assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.mark.browser
 def test_the_explorer_shows_the_validation_map(tmp_path, truth):
     """explore_web.py --validation REPORT serves the report's scene at its movements, and the
     page (headless Chromium) opens on its distance map: the colour map's top is the report's
