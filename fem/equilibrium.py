@@ -49,7 +49,7 @@ import ufl
 
 from fem import compat
 from fem.domain import Domain
-from fem.factorisation import Factorisation
+from fem.factorisation import Factorisation, FactorState
 from fem.forms import DEFAULT_PENALTY, Forms
 from fem.limits import OPTIONS, check
 from fem.material import HOMOGENEOUS, NeoHookean, Tissues, neo_hookean
@@ -246,9 +246,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._tangent_refresh = False        # armed by solve(tangent=True), see _converged
         self._relaxing = False               # self._qn_snes is relax()'s, pairs kept
         self._last_its = 0                   # iterations of the last SNES solve
-        self._pc_ready = False               # the SNES PC holds a factorisation of some K
-        self._stale_pc = False               # ... which slowed the last tangent solve
-        self._pc_at_eq = False               # ... of K at the equilibrium, unshifted
+        self.factor = FactorState.NONE       # what the kept factorisation holds
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
         # (else, e.g. a mandible held in an occlusion, rest is no equilibrium: inf)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import enum
 import logging
 import time
 
@@ -24,6 +25,20 @@ log = logging.getLogger(__name__)
 QN_PREFIX, TANGENT_PREFIX = "qn_", "tangent_"
 #: MUMPS errors (INFOG(1)) of a too small workspace (ICNTL(14) is then doubled).
 MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
+
+
+class FactorState(enum.Enum):
+    """What the kept factorisation (the shared KSP's PC) holds; `Factorisation` changes it:
+    a factorisation at an iterate (`_jacobian`) gives ITERATE, one at the equilibrium
+    (`_factorise_at_equilibrium`) EQUILIBRIUM or SHIFTED, a new equilibrium
+    (`_equilibrium_moved`) turns EQUILIBRIUM into ITERATE, and a slow tangent solve
+    (`fem.tangent`) gives STALE."""
+
+    NONE = "none"                  # nothing factorised yet
+    ITERATE = "iterate"            # K at an iterate, or at a former equilibrium
+    EQUILIBRIUM = "equilibrium"    # K at the current equilibrium, unshifted
+    SHIFTED = "shifted"            # K at the equilibrium plus a diagonal shift (not PD there)
+    STALE = "stale"                # it slowed the last tangent solve: refactorise first
 
 
 class _ApplyOther:
@@ -163,7 +178,7 @@ class Factorisation:
         inertia is checked right after factorisation, and the shift raised until K is PD.
         Quasi-Newton keeps the last factorisation (nothing assembled) while it serves: it
         was not shifted and the last solve needed at most ``lag_its`` iterations."""
-        if (snes is not None and snes.getType() == "qn" and self._pc_ready
+        if (snes is not None and snes.getType() == "qn" and self.factor is not FactorState.NONE
                 and not self._refactor and self._shift == 0 and self._step_shift == 0
                 and self._last_its <= self.lag_its):
             self._stats.lagged += 1
@@ -189,16 +204,17 @@ class Factorisation:
             A.shift(self._shift)
         self._step_shift = self._shift
         pc = self.ksp.getPC()
-        reuse = (self.method == "newton" and self.lag_its > 0 and self._pc_ready
+        reuse = (self.method == "newton" and self.lag_its > 0
+                 and self.factor is not FactorState.NONE
                  and not self._refactor and self._shift == 0
                  and self.ksp.getIterationNumber() <= self.lag_its)
         pc.setReusePreconditioner(reuse)   # lagging: CG on the new K, the old factor as PC
-        self._pc_ready, self._refactor = True, False
+        self._refactor = False
         if reuse:
             self._stats.lagged += 1
             return
         self._stats.factorisations += 1
-        self._stale_pc = self._pc_at_eq = False
+        self.factor = FactorState.ITERATE
         if pc.getType() != "cholesky":
             return
         while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
@@ -274,4 +290,9 @@ class Factorisation:
         self.ksp.setOperators(self.A)
         self.ksp.getPC().setUp()
         self._set_state(self.u_eq)
-        self._pc_at_eq = self._step_shift == 0
+        self.factor = FactorState.EQUILIBRIUM if self._step_shift == 0 else FactorState.SHIFTED
+
+    def _equilibrium_moved(self):
+        """A new equilibrium: a factorisation of K at the former one is now an iterate's."""
+        if self.factor is FactorState.EQUILIBRIUM:
+            self.factor = FactorState.ITERATE

@@ -235,7 +235,7 @@ class NonlinearSolves:
         if moved:
             self.solved_xtol = self.xtol
             self._invalidate()
-            self._pc_at_eq = False
+            self._equilibrium_moved()
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
         if st.goal_error > self.policy.goal_tolerance_mm:
@@ -359,4 +359,4 @@ class NonlinearSolves:
         u.copy(self.u_eq)
         self._set_state(self.u_eq)
         self._invalidate()
-        self._pc_at_eq = False
+        self._equilibrium_moved()

@@ -11,6 +11,7 @@ import logging
 
 import numpy as np
 
+from fem.factorisation import FactorState
 from meshes.errors import SolverError
 
 log = logging.getLogger(__name__)
@@ -30,17 +31,20 @@ class TangentSolves:
         (`own_tangent_pc`) nothing is factorised. Returns the CG iteration count."""
         self._assemble_K()
         ksp = self.tangent_ksp
-        far = not self._pc_at_eq and self._last_its > self.policy.tangent_lag_its
+        far = self.factor is not FactorState.EQUILIBRIUM and \
+            self._last_its > self.policy.tangent_lag_its
         own = self.own_tangent_pc
         for attempt in range(2):
-            if not own and (attempt or not self._pc_ready or self._stale_pc or far):
+            if not own and (attempt or far or self.factor in (FactorState.NONE,
+                                                               FactorState.STALE)):
                 self._factorise_at_equilibrium()
             ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
             ksp.solve(rhs, out)
             if ksp.getConvergedReason() > 0:
                 if attempt:
                     ksp.setType("cg")
-                self._stale_pc = ksp.getIterationNumber() > self.policy.tangent_lag_its
+                if not own and ksp.getIterationNumber() > self.policy.tangent_lag_its:
+                    self.factor = FactorState.STALE
                 return ksp.getIterationNumber()
         raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
                           f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "
@@ -63,9 +67,9 @@ class TangentSolves:
         pc = self.ksp.getPC()
         if pc.getType() != "cholesky" or self.n_params == 0 or self.own_tangent_pc:
             return None
-        if not self._pc_at_eq:
+        if self.factor is not FactorState.EQUILIBRIUM:
             self._factorise_at_equilibrium()
-            if not self._pc_at_eq:   # shifted: the tangent solves handle it
+            if self.factor is FactorState.SHIFTED:   # the tangent solves handle it
                 return None
         n, N = self.u_eq.getLocalSize(), self.u_eq.getSize()
         rhs = PETSc.Mat().createDense([(n, N), (None, self.n_params)], comm=self.domain.comm)
