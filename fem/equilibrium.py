@@ -51,11 +51,11 @@ from fem import compat
 from fem.domain import Domain
 from fem.factorisation import Factorisation, FactorState
 from fem.forms import DEFAULT_PENALTY, Forms
-from fem.limits import OPTIONS, check
+from fem.limits import check
 from fem.material import HOMOGENEOUS, NeoHookean, Tissues, neo_hookean
 from fem.nonlinear import NonlinearSolves, SolveStats
 from fem.path import PathFollowing
-from fem.policy import DEFAULT_POLICY, METHOD_DEFAULTS, METHODS, PRESETS, SolverPolicy
+from fem.policy import EquilibriumOptions
 from fem.tangent import TangentSolves
 from meshes.errors import InputError
 
@@ -133,32 +133,24 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
             not 7. Quasi-Newton: a solve starts from the kept factorisation unless it was
             shifted or the previous solve needed more than lag_its iterations (default 30).
         policy: when to refactorise, bisect, hand over and give up (`fem.policy`).
+        settings: all of the above from ``solver`` on, as one `fem.policy.EquilibriumOptions`
+            (frozen, validated where made); or its fields as keywords, not both.
     """
 
     def __init__(self, domain: Domain, goals, active_tags, sliding_tags=(),
                  material: NeoHookean | Tissues = HOMOGENEOUS, penalty: float = DEFAULT_PENALTY,
-                 solver: str = "direct", options: dict | None = None,
-                 prefix: str = "orthodiff_fwd_", method: str = "qn",
-                 xtol: float | None = None, frtol: float = 1e-2, atol: float = 1e-10,
-                 max_it: int | None = None, shift_max: float = 1e4, shift_retry: float = 1.0,
-                 lag_its: int | None = None, quadrature_degree: int = 2,
-                 volume_quadrature_degree: int | None = None,
-                 policy: SolverPolicy = DEFAULT_POLICY):
-        if not prefix:
-            raise ValueError("an options prefix is required")
-        if solver not in PRESETS:
-            raise InputError(f"unknown solver preset {solver!r}; choose one of {list(PRESETS)}")
-        if method not in METHODS:
-            raise InputError(f"unknown method {method!r}; choose one of {list(METHODS)}")
+                 settings: EquilibriumOptions | None = None, **kw):
+        if settings is not None and kw:
+            raise InputError(f"give the equilibrium's options once: EquilibriumOptions or "
+                             f"keywords ({sorted(kw)}), not both")
+        self.settings = opts = settings if settings is not None else EquilibriumOptions(**kw)
         penalty = check("penalty", penalty)
         t0 = time.perf_counter()
-        self.policy = policy
+        self.policy = opts.policy
         self.domain, self.material, self.penalty = domain, material, penalty
-        given = dict(xtol=xtol, max_it=max_it, lag_its=lag_its)
-        for key, default in METHOD_DEFAULTS[method].items():
-            value = default if given[key] is None else given[key]
-            setattr(self, key, check(key, value) if key in OPTIONS else value)
-        self.method, self.frtol, self.atol = method, frtol, atol
+        self.method, self.xtol, self.max_it, self.lag_its = (opts.method, opts.xtol, opts.max_it,
+                                                             opts.lag_its)
+        self.frtol, self.atol = opts.frtol, opts.atol
         V = domain.V
         self.u = dolfinx.fem.Function(V, name="displacement")
         self._uvec = compat.petsc_vec(self.u)
@@ -181,14 +173,14 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
         F = ufl.Identity(3) + ufl.grad(self.u)
         ds = domain.ds()
-        md = {"quadrature_degree": quadrature_degree}
+        md = {"quadrature_degree": opts.quadrature_degree}
         gap = self.u - self.goal
         # material and penalty are constants (or cell fields), not numbers: the forms
         # compile once for all values
         k = dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(penalty))
         mu, lmbda = self._lame(material)
-        qd = 2 * (domain.degree - 1) if volume_quadrature_degree is None else \
-            volume_quadrature_degree
+        qd = 2 * (domain.degree - 1) if opts.volume_quadrature_degree is None else \
+            opts.volume_quadrature_degree
         dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
         contact = 0
         if active_tags:
@@ -230,10 +222,10 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._assemble_couplings()
         self._dfdp = [self.dfdg.createVecLeft() for _ in range(self.n_params)]
         self._dfdp_at = None   # the p of self._dfdp
-        self.shift_max, self.shift_retry = shift_max, shift_retry
+        self.shift_max, self.shift_retry = opts.shift_max, opts.shift_retry
         self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
         self._step_shift = 0.0   # the shift of the last Newton step's matrix
-        self.ksp = self._make_snes(prefix, solver, options or {})
+        self.ksp = self._make_snes(opts.prefix, opts.solver, opts.options)
         self._f_ref = None
         self._refactor = False
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
@@ -256,7 +248,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
         self._K_ready = False
         self._sens = None                    # cached dx/dp columns at the equilibrium
-        self.tangent_ksp = self._make_tangent_ksp(prefix)
+        self.tangent_ksp = self._make_tangent_ksp(opts.prefix)
         # det F at the vertices of each cell (constant on P1 cells, so its centroid)
         pts = np.array([[0.25] * 3] if domain.degree == 1 else
                        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.25] * 3], dtype=float)

@@ -84,6 +84,13 @@ OPTIONS = {
     "xtol": Range(XTOL_FLOOR_MM, 100.0),                        # mm
     "max_it": Range(1, MAX_SNES_ITERATIONS, integer=True),
     "max_bisections": Range(0, MAX_BISECTIONS, integer=True),
+    # the equilibrium's (`fem.policy.EquilibriumOptions`; xtol and max_it above)
+    "frtol": Range(FRTOL_FLOOR, 1.0),                           # of the step's load
+    "atol": Range(0.0, 1e6),                                    # residual norm, mN
+    "shift_max": Range(0.0, 1e12, open_lo=True),                # x the median diagonal of K
+    "shift_retry": Range(0.0, 1e12),
+    "lag_its": Range(0, MAX_SNES_ITERATIONS, integer=True),
+    "quadrature_degree": Range(0, 12, integer=True),
     # a plan's (`inverse.planner.PlanOptions`)
     "gtol": Range(0.0, 1e6),                                    # mm² per unit
     "step_tol": Range(0.0, 100.0),                              # units (mm, degrees)

@@ -145,3 +145,52 @@ POLICY_RANGES = {
     "goal_failure_mm": (0.0, 100.0, True)}
 
 DEFAULT_POLICY = SolverPolicy()
+
+
+@dataclasses.dataclass(frozen=True)
+class EquilibriumOptions:
+    """How `fem.equilibrium.Equilibrium` solves (its docstring says what each field does):
+    frozen, and validated where made (`fem.limits`: one-line `InputError`). ``None``: the
+    method's default (`METHOD_DEFAULTS`), filled in here. ``options``: PETSc options without
+    a prefix, for whichever SNES runs and the shared KSP."""
+
+    solver: str = "direct"
+    options: dict = dataclasses.field(default_factory=dict)
+    prefix: str = "orthodiff_fwd_"
+    method: str = "qn"
+    xtol: float | None = None
+    frtol: float = 1e-2
+    atol: float = 1e-10
+    max_it: int | None = None
+    shift_max: float = 1e4
+    shift_retry: float = 1.0
+    lag_its: int | None = None
+    quadrature_degree: int = 2
+    volume_quadrature_degree: int | None = None
+    policy: SolverPolicy = DEFAULT_POLICY
+
+    def __post_init__(self):
+        from fem.limits import check
+        from meshes.errors import InputError
+
+        if not isinstance(self.prefix, str) or not self.prefix:
+            raise InputError(f"an options prefix is required, got {self.prefix!r}")
+        if self.solver not in PRESETS:
+            raise InputError(f"unknown solver preset {self.solver!r}; choose one of "
+                             f"{list(PRESETS)}")
+        if self.method not in METHODS:
+            raise InputError(f"unknown method {self.method!r}; choose one of {list(METHODS)}")
+        if not isinstance(self.options, dict):
+            raise InputError(f"options must be a dict of PETSc options, got {self.options!r}")
+        if not isinstance(self.policy, SolverPolicy):
+            raise InputError(f"policy must be a SolverPolicy, got {self.policy!r}")
+        values = {**{k: v for k, v in METHOD_DEFAULTS[self.method].items()
+                     if getattr(self, k) is None}, "options": dict(self.options)}
+        for key in ("xtol", "frtol", "atol", "max_it", "shift_max", "shift_retry", "lag_its",
+                    "quadrature_degree"):
+            values[key] = check(key, values.get(key, getattr(self, key)))
+        if self.volume_quadrature_degree is not None:
+            values["volume_quadrature_degree"] = check(
+                "quadrature_degree", self.volume_quadrature_degree, "volume_quadrature_degree")
+        for key, value in values.items():
+            object.__setattr__(self, key, value)

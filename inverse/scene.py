@@ -20,6 +20,7 @@ from fem.equilibrium import Equilibrium, SolveStats
 from fem.forms import DEFAULT_PENALTY
 from fem.io import write_xdmf
 from fem.material import NeoHookean, Tissues, material_from_spec
+from fem.policy import EquilibriumOptions
 from inverse.treatment import Treatment, rigid_treatment
 from meshes.anatomy import segment_tags
 from meshes.errors import InputError
@@ -54,9 +55,10 @@ class Scene:
             (default: the anatomy's ``material``: a CT scene's tissues, a synthetic head's
             homogeneous material).
         penalty (kPa/mm), solver (preset name), options (PETSc options), and
-            ``equilibrium`` (dict: method, xtol, frtol, max_it, ...; the nonlinear solve,
-            quasi-Newton or Newton): passed to `fem.equilibrium.Equilibrium`. ``newton``: the
-            same dict under its former name.
+            ``equilibrium`` (a `fem.policy.EquilibriumOptions`, or a dict of its fields:
+            method, xtol, frtol, max_it, ...; the nonlinear solve, quasi-Newton or Newton):
+            passed to `fem.equilibrium.Equilibrium`. ``newton``: the same under its former
+            name.
     """
 
     case: str | None = None
@@ -66,7 +68,7 @@ class Scene:
                  params_used=None, occlusion="free", linear: bool = False,
                  groups: bool = True, material: NeoHookean | Tissues | str | None = None,
                  penalty: float = DEFAULT_PENALTY, solver: str = "direct",
-                 options: dict | None = None, equilibrium: dict | None = None,
+                 options: dict | None = None, equilibrium=None,
                  contact: str | None = None, degree: int = 1,
                  comm: MPI.Comm = MPI.COMM_WORLD, newton: dict | None = None):
         if newton is not None and equilibrium is not None:
@@ -105,9 +107,16 @@ class Scene:
         glued = [t for s in self.domain.segments.values() for t in segment_tags(s)
                  if t not in sliding]
         t0 = time.perf_counter()
+        if isinstance(equilibrium, EquilibriumOptions):   # whole: solver and options in it
+            if solver != "direct" or options:
+                raise InputError("give the solver and PETSc options in the "
+                                 "EquilibriumOptions, not beside it")
+        else:
+            equilibrium = EquilibriumOptions(solver=solver, options=options or {},
+                                             **(equilibrium or {}))
         self.eq = Equilibrium(self.domain, self.treatment.goal_map(self.domain), glued,
-                              sliding, material=material, penalty=penalty, solver=solver,
-                              options=options, **(equilibrium or {}))
+                              sliding, material=material, penalty=penalty,
+                              settings=equilibrium)
         self.timings["compile"] = time.perf_counter() - t0
         self._landmark_op = self.domain.point_operator(list(self.domain.landmarks))
 

@@ -184,6 +184,40 @@ def test_the_equilibrium_settings_under_their_former_name(mandible_only, tiny_an
     scene.eq.destroy()
     with pytest.raises(InputError, match="give the equilibrium's settings once"):
         mandible_only(tiny_anatomy, newton={}, equilibrium={})
+    from fem.policy import EquilibriumOptions
+
+    opts = EquilibriumOptions(method="newton", xtol=1e-3)
+    scene = mandible_only(tiny_anatomy, equilibrium=opts)
+    assert scene.eq.settings is opts and scene.eq.xtol == 1e-3 and scene.eq.method == "newton"
+    scene.eq.destroy()
+    with pytest.raises(InputError, match="in the EquilibriumOptions, not beside it"):
+        mandible_only(tiny_anatomy, equilibrium=opts, solver="cholmod")
+
+
+@pytest.mark.unit
+@pytest.mark.parametrize("bad, match", [
+    (dict(frtol=0.0), "frtol must be"), (dict(atol=float("inf")), "atol must be"),
+    (dict(xtol=1e-11), "xtol must be"), (dict(max_it=0), "max_it must be"),
+    (dict(lag_its=-1), "lag_its must be"), (dict(shift_max=0.0), "shift_max must be"),
+    (dict(quadrature_degree=1.5), "quadrature_degree must be"),
+    (dict(volume_quadrature_degree=-1), "volume_quadrature_degree must be"),
+    (dict(method="bfgs"), "unknown method"), (dict(solver="lu"), "unknown solver preset"),
+    (dict(prefix=""), "an options prefix is required"), (dict(options=[1]), "options must be"),
+    (dict(policy={}), "policy must be a SolverPolicy")])
+def test_equilibrium_options_are_validated_where_they_are_made(bad, match):
+    """`EquilibriumOptions` checks each field when made (`fem.limits`, one line), fills the
+    method's defaults in, and is frozen."""
+    import dataclasses
+
+    from fem.policy import METHOD_DEFAULTS, EquilibriumOptions
+
+    with pytest.raises(InputError, match=match):
+        EquilibriumOptions(**bad)
+    for method, defaults in METHOD_DEFAULTS.items():
+        opts = EquilibriumOptions(method=method)
+        assert {k: getattr(opts, k) for k in defaults} == defaults
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        opts.xtol = 1.0
 
 
 @pytest.mark.integration
