@@ -1,0 +1,110 @@
+"""The kept factorisation on its own (`fem.factorisation.FactorState`), on a block of tissue:
+each operation moves its state as docs/design.md says, and a factorisation is made only where
+the state asks for one."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_contact import _block
+
+from fem.factorisation import FactorState
+from fem.policy import DEFAULT_POLICY
+
+#: The tests' tier (conftest.py): one part on a block, seconds.
+TIER = "unit"
+
+
+def _scene(**equilibrium):
+    from inverse.scene import Scene
+    from inverse.treatment import rigid_treatment
+
+    return Scene(_block(3, 0), rigid_treatment(("mandible",), ("lateral_mm", "vertical_mm")),
+                 contact="glued", equilibrium=equilibrium)
+
+
+def _made(eq) -> int:
+    return eq.stats.factorisations
+
+
+def test_states_of_a_solve_a_sensitivity_and_a_restore():
+    """NONE until the first solve; a solve leaves a factorisation of K at a former
+    equilibrium (ITERATE); dx/dp refactorises once at the new one (EQUILIBRIUM), is cached,
+    and first-order steps reuse that factor; a restored equilibrium is another (ITERATE)."""
+    scene = _scene()
+    eq = scene.eq
+    assert eq.factor is FactorState.NONE
+    base = eq.snapshot()
+    scene.solve([0.5, -0.8])
+    assert eq.factor is FactorState.ITERATE
+    made = _made(eq)
+    S = eq.sensitivity()
+    assert eq.factor is FactorState.EQUILIBRIUM and _made(eq) == made + 1
+    assert eq.sensitivity() is S and _made(eq) == made + 1   # cached, not refactorised
+    step = eq.tangent_step(np.array([0.1, 0.0]), eq._load(-np.array([0.1, 0.0])))
+    np.testing.assert_allclose(step.array, 0.1 * S[0].array, rtol=1e-8, atol=1e-12)
+    assert _made(eq) == made + 1
+    step.destroy()
+    eq.restore(base)
+    assert eq.factor is FactorState.ITERATE
+    base[1].destroy()
+    eq.destroy()
+
+
+def test_a_slow_tangent_solve_makes_it_stale_and_the_next_refactorises():
+    """A tangent solve that needs more than `SolverPolicy.tangent_lag_its` CG iterations
+    leaves the factorisation STALE; the next tangent solve refactorises at the equilibrium
+    first (with tangent_lag_its = 0 every CG solve is slow)."""
+    scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, tangent_lag_its=0))
+    eq = scene.eq
+    scene.solve([0.5, -0.8])
+    rhs, out = eq._load(-np.array([0.1, 0.0])), eq.u_eq.duplicate()
+    made = _made(eq)
+    assert eq.solve_tangent(rhs, out) >= 1
+    assert eq.factor is FactorState.STALE and _made(eq) == made + 1
+    eq.solve_tangent(rhs, out)
+    assert eq.factor is FactorState.STALE and _made(eq) == made + 2
+    for v in (rhs, out):
+        v.destroy()
+    eq.destroy()
+
+
+def test_a_shifted_factorisation_is_not_used_as_the_equilibriums(monkeypatch):
+    """Where K at the equilibrium is not positive definite (the inertia check reports a
+    negative pivot), it is factorised with a diagonal shift (SHIFTED): dx/dp then comes from
+    tangent solves on K itself, not the block solve; the first needs more than
+    `SolverPolicy.tangent_lag_its` iterations on the shifted factor (STALE), so the next
+    refactorises (unshifted now: EQUILIBRIUM), and dx/dp equals the unshifted block solve's."""
+    scene = _scene()
+    eq = scene.eq
+    scene.solve([0.5, -0.8])
+    exact = [s.array.copy() for s in eq.sensitivity()]
+    eq._invalidate()                               # drop the cached dx/dp
+    eq.factor = FactorState.ITERATE                # as if the equilibrium had moved
+    pivots = iter([1])                             # one negative pivot, then the real ones
+    real_inertia, real_solve = eq._inertia, eq.solve_tangent
+    monkeypatch.setattr(eq, "_inertia", lambda pc, A: next(pivots, None) or real_inertia(pc, A))
+    seen = []
+    monkeypatch.setattr(eq, "solve_tangent",
+                        lambda rhs, out: seen.append(eq.factor) or real_solve(rhs, out))
+    shifts = len(eq.stats.shifts)
+    S = eq.sensitivity()
+    assert seen == [FactorState.SHIFTED, FactorState.STALE], seen
+    assert eq.factor is FactorState.EQUILIBRIUM and len(eq.stats.shifts) == shifts + 1
+    for s, e in zip(S, exact):   # CG to 1e-11 of the residual against a direct solve
+        np.testing.assert_allclose(s.array, e, rtol=0, atol=1e-8 * np.abs(e).max())
+    eq.destroy()
+
+
+@pytest.mark.parametrize("method", ["qn", "newton"])
+def test_a_new_equilibrium_keeps_no_factorisation_as_its_own(method):
+    """After any solve that moves the equilibrium the factorisation is not the new
+    equilibrium's, whichever method solved it."""
+    scene = _scene(method=method)
+    eq = scene.eq
+    scene.solve([0.3, 0.0])
+    eq.sensitivity()
+    assert eq.factor is FactorState.EQUILIBRIUM
+    scene.solve([0.6, 0.2])
+    assert eq.factor is FactorState.ITERATE
+    eq.destroy()
