@@ -49,7 +49,7 @@ import ufl
 
 from fem import compat
 from fem.domain import Domain
-from fem.factorisation import Factorisation, FactorState
+from fem.factorisation import Factorisation
 from fem.forms import DEFAULT_PENALTY, Forms
 from fem.limits import check
 from fem.material import HOMOGENEOUS, NeoHookean, Tissues, neo_hookean
@@ -223,11 +223,9 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._dfdp = [self.dfdg.createVecLeft() for _ in range(self.n_params)]
         self._dfdp_at = None   # the p of self._dfdp
         self.shift_max, self.shift_retry = opts.shift_max, opts.shift_retry
-        self._shift, self._diag_scale, self._stats = 0.0, None, SolveStats()
-        self._step_shift = 0.0   # the shift of the last Newton step's matrix
-        self.ksp = self._make_snes(opts.prefix, opts.solver, opts.options)
+        self._stats = SolveStats()
+        self.ksp = self._make_snes(opts.prefix, opts.solver, opts.options)   # and self.kept
         self._f_ref = None
-        self._refactor = False
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
         self._obj_val = None                 # its energy (None: not valid)
         self._w, self._r = self._uvec.duplicate(), self.b.duplicate()   # line-search trial
@@ -238,7 +236,6 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._tangent_refresh = False        # armed by solve(tangent=True), see _converged
         self._relaxing = False               # self._qn_snes is relax()'s, pairs kept
         self._last_its = 0                   # iterations of the last SNES solve
-        self.factor = FactorState.NONE       # what the kept factorisation holds
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
         # (else, e.g. a mandible held in an occlusion, rest is no equilibrium: inf)

@@ -1,5 +1,7 @@
-"""The kept factorisation of K: the SNES objects that share one KSP, MUMPS set-up and
-workspace retries, the inertia check and its diagonal shifts, and when K is refactorised.
+"""The kept factorisation of K: `KeptFactor`, the part that owns it (the shared KSP, MUMPS
+set-up and workspace retries, the inertia check and its diagonal shifts, its `FactorState`),
+and the SNES objects that share it (`Factorisation`, a mixin of `Equilibrium`: when K is
+assembled and refactorised).
 """
 
 from __future__ import annotations
@@ -28,17 +30,138 @@ MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
 
 
 class FactorState(enum.Enum):
-    """What the kept factorisation (the shared KSP's PC) holds; `Factorisation` changes it:
-    a factorisation at an iterate (`_jacobian`) gives ITERATE, one at the equilibrium
-    (`_factorise_at_equilibrium`) EQUILIBRIUM or SHIFTED, a new equilibrium
-    (`_equilibrium_moved`) turns EQUILIBRIUM into ITERATE, and a slow tangent solve
-    (`fem.tangent`) gives STALE."""
+    """What the kept factorisation (`KeptFactor`, the shared KSP's PC) holds: a
+    factorisation at an iterate (`KeptFactor.factorise`) gives ITERATE, one at the
+    equilibrium (`Factorisation._factorise_at_equilibrium`, then `KeptFactor.at_equilibrium`)
+    EQUILIBRIUM or SHIFTED, a new equilibrium (`KeptFactor.moved`) turns EQUILIBRIUM into
+    ITERATE, and a slow tangent solve (`fem.tangent`) gives STALE."""
 
     NONE = "none"                  # nothing factorised yet
     ITERATE = "iterate"            # K at an iterate, or at a former equilibrium
     EQUILIBRIUM = "equilibrium"    # K at the current equilibrium, unshifted
     SHIFTED = "shifted"            # K at the equilibrium plus a diagonal shift (not PD there)
     STALE = "stale"                # it slowed the last tangent solve: refactorise first
+
+
+class KeptFactor:
+    """The factorisation every solve shares, a part that owns its state: the KSP (Newton's
+    SNES's, shared by the quasi-Newton ones), its MUMPS set-up and workspace retries, the
+    inertia check and the diagonal shift, and what it holds (`state`, a `FactorState`).
+
+    Attributes:
+        state: what the factor holds; ``refactor``: the next Jacobian must refactorise (a
+            request: a factor of K elsewhere, e.g. after path following, or a stall).
+        shift: the diagonal shift the next factorisation starts from (decays after a PD
+            one), in K's units; ``step_shift``: the shift of the last factorised matrix;
+            ``diag_scale``: the median diagonal of the first K (shift units).
+    """
+
+    def __init__(self, ksp, comm, settings: dict, prefix: str, shift_max: float, policy):
+        self.ksp, self.comm, self.shift_max, self.policy = ksp, comm, shift_max, policy
+        self.state, self.refactor = FactorState.NONE, False
+        self.shift, self.step_shift, self.diag_scale = 0.0, 0.0, None
+        pc = ksp.getPC()
+        self.check_inertia = pc.getType() == "cholesky" and pc.getFactorSolverType() == "mumps"
+        self.icntl = {}
+        if self.check_inertia:
+            opts = PETSc.Options()
+            self.icntl = {int(k.rsplit("_", 1)[1]): opts.getInt(prefix + k, int(v))
+                          for k, v in settings.items() if k.startswith("mat_mumps_icntl_")}
+            self.new_mumps_factor(pc)
+
+    @property
+    def ready(self) -> bool:
+        """A factorisation of some K is held."""
+        return self.state is not FactorState.NONE
+
+    def new_mumps_factor(self, pc):
+        """A new MUMPS factor in ``pc`` with our ICNTL settings (MUMPS reads them at
+        factorisation time, after the options database lost them: they are set here)."""
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        for k, v in self.icntl.items():
+            factor.setMumpsIcntl(k, v)
+
+    def factorise(self, A, stats, reuse: bool = False):
+        """Factorise A (assembled K) plus the current shift; with MUMPS's inertia check the
+        shift is raised until A is positive definite (or `shift_max` x the diagonal scale).
+        ``reuse``: keep the old factor as the preconditioner of the new A (Newton lagging).
+        Counts in ``stats`` (`SolveStats`)."""
+        if self.diag_scale is None:   # typical elastic diagonal, for shift sizes
+            d = A.getDiagonal()
+            med = np.median(d.array_r) if d.getLocalSize() else 0.0
+            self.diag_scale = self.comm.allreduce(med, op=MPI.MAX)
+            d.destroy()
+        if self.shift > 0:
+            A.shift(self.shift)
+        self.step_shift = self.shift
+        pc = self.ksp.getPC()
+        pc.setReusePreconditioner(reuse)   # lagging: CG on the new K, the old factor as PC
+        self.refactor = False
+        if reuse:
+            stats.lagged += 1
+            return
+        stats.factorisations += 1
+        self.state = FactorState.ITERATE
+        if pc.getType() != "cholesky":
+            return
+        while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
+            t = time.perf_counter()
+            self.ksp.setOperators(A)
+            try:
+                pc.setUp()
+                n_neg = self.inertia(pc, A) if self.check_inertia else 0
+            except PETSc.Error:
+                n_neg = -1
+            stats.factor += time.perf_counter() - t
+            if n_neg == 0:
+                break
+            if self.shift >= self.shift_max * self.diag_scale:
+                break   # give up on PD; the line search and the caller decide
+            new = max(4 * self.shift, 1e-2 * self.diag_scale)
+            A.shift(new - self.shift)
+            self.shift = new
+            stats.shifts.append(new)
+            log.debug("%d negative pivots: diagonal shift %.3g", n_neg, new)
+        self.step_shift = self.shift
+        # let the shift decay once a step is accepted with a PD matrix
+        self.shift = 0.0 if self.shift < 0.04 * self.diag_scale else self.shift / 4
+
+    def inertia(self, pc, A) -> int:
+        """Negative pivots of MUMPS's LDLᵀ factor of A, or -1 when the factorisation failed.
+        PETSc 3.18 does not raise on a failed MUMPS factorisation: it leaves INFOG(1) < 0 and
+        skips every later numeric factorisation of that factor, so a failed one is replaced
+        by a new factor (a new analysis). Where the workspace was too small (delayed pivots
+        filled beyond the analysis's estimate; on 2 ranks this varies from run to run),
+        ICNTL(14) is doubled and A factorised again."""
+        for attempt in range(self.policy.mumps_workspace_retries + 1):
+            F = pc.getFactorMatrix()
+            err = F.getMumpsInfog(1)
+            if err >= 0:
+                return F.getInertia()[0]
+            workspace = err in MUMPS_WORKSPACE_ERRORS and \
+                attempt < self.policy.mumps_workspace_retries
+            if workspace:
+                self.icntl[14] = 2 * max(F.getMumpsIcntl(14), 10)
+            pc.reset()
+            self.ksp.setOperators(A)
+            self.new_mumps_factor(pc)
+            if not workspace:
+                break
+            log.info("MUMPS workspace too small (INFOG(1) = %d): factorising again with "
+                     "ICNTL(14) = %d %%", err, self.icntl[14])
+            pc.setUp()
+        log.warning("MUMPS factorisation failed (INFOG(1) = %d)", err)
+        return -1
+
+    def at_equilibrium(self):
+        """The factor just made was of K at the equilibrium: EQUILIBRIUM, or SHIFTED."""
+        self.state = FactorState.EQUILIBRIUM if self.step_shift == 0 else FactorState.SHIFTED
+
+    def moved(self):
+        """A new equilibrium: a factorisation of K at the former one is now an iterate's."""
+        if self.state is FactorState.EQUILIBRIUM:
+            self.state = FactorState.ITERATE
 
 
 class _ApplyOther:
@@ -85,24 +208,10 @@ class Factorisation:
         self._qn_snes = None
         ksp = self._newton_snes.getKSP()
         ksp.setOperators(self.A)
-        pc = ksp.getPC()
-        self._check_inertia = pc.getType() == "cholesky" and \
-            pc.getFactorSolverType() == "mumps"
-        if self._check_inertia:
-            opts = PETSc.Options()
-            self._icntl = {int(k.rsplit("_", 1)[1]): opts.getInt(prefix + k, int(v))
-                           for k, v in settings.items() if k.startswith("mat_mumps_icntl_")}
-            self._new_mumps_factor(pc)
+        self.kept = KeptFactor(ksp, self.domain.comm, settings, prefix, self.shift_max,
+                               self.policy)
         self.solver_name = solver
         return ksp
-
-    def _new_mumps_factor(self, pc):
-        """A new MUMPS factor in ``pc`` with our ICNTL settings (MUMPS reads them at
-        factorisation time, after the options database lost them: they are set here)."""
-        pc.setFactorSetUpSolverType()
-        factor = pc.getFactorMatrix()
-        for k, v in self._icntl.items():
-            factor.setMumpsIcntl(k, v)
 
     def _build_snes(self, settings: dict, max_it: int, ksp=None, prefix: str | None = None):
         """A SNES with our callbacks and line search checks, configured from ``settings``
@@ -178,9 +287,9 @@ class Factorisation:
         inertia is checked right after factorisation, and the shift raised until K is PD.
         Quasi-Newton keeps the last factorisation (nothing assembled) while it serves: it
         was not shifted and the last solve needed at most ``lag_its`` iterations."""
-        if (snes is not None and snes.getType() == "qn" and self.factor is not FactorState.NONE
-                and not self._refactor and self._shift == 0 and self._step_shift == 0
-                and self._last_its <= self.lag_its):
+        kept = self.kept
+        if (snes is not None and snes.getType() == "qn" and kept.ready and not kept.refactor
+                and kept.shift == 0 and kept.step_shift == 0 and self._last_its <= self.lag_its):
             self._stats.lagged += 1
             return
         t = time.perf_counter()
@@ -194,77 +303,10 @@ class Factorisation:
             self._set_state(x)
             with self._turns_at(self.p if at_eq else None):
                 self._assemble_jacobian(A)
-        if self._diag_scale is None:   # typical elastic diagonal, for shift sizes
-            d = A.getDiagonal()
-            med = np.median(d.array_r) if d.getLocalSize() else 0.0
-            self._diag_scale = self.domain.comm.allreduce(med, op=MPI.MAX)
-            d.destroy()
         self._stats.assemble += time.perf_counter() - t
-        if self._shift > 0:
-            A.shift(self._shift)
-        self._step_shift = self._shift
-        pc = self.ksp.getPC()
-        reuse = (self.method == "newton" and self.lag_its > 0
-                 and self.factor is not FactorState.NONE
-                 and not self._refactor and self._shift == 0
-                 and self.ksp.getIterationNumber() <= self.lag_its)
-        pc.setReusePreconditioner(reuse)   # lagging: CG on the new K, the old factor as PC
-        self._refactor = False
-        if reuse:
-            self._stats.lagged += 1
-            return
-        self._stats.factorisations += 1
-        self.factor = FactorState.ITERATE
-        if pc.getType() != "cholesky":
-            return
-        while True:   # factorise; shift until PD (MUMPS: inertia; CHOLMOD: failed Cholesky)
-            t = time.perf_counter()
-            self.ksp.setOperators(A)
-            try:
-                pc.setUp()
-                n_neg = self._inertia(pc, A) if self._check_inertia else 0
-            except PETSc.Error:
-                n_neg = -1
-            self._stats.factor += time.perf_counter() - t
-            if n_neg == 0:
-                break
-            if self._shift >= self.shift_max * self._diag_scale:
-                break   # give up on PD; the line search and the caller decide
-            new = max(4 * self._shift, 1e-2 * self._diag_scale)
-            A.shift(new - self._shift)
-            self._shift = new
-            self._stats.shifts.append(new)
-            log.debug("%d negative pivots: diagonal shift %.3g", n_neg, new)
-        self._step_shift = self._shift
-        # let the shift decay once a step is accepted with a PD matrix
-        self._shift = 0.0 if self._shift < 0.04 * self._diag_scale else self._shift / 4
-
-    def _inertia(self, pc, A) -> int:
-        """Negative pivots of MUMPS's LDLᵀ factor of A, or -1 when the factorisation failed.
-        PETSc 3.18 does not raise on a failed MUMPS factorisation: it leaves INFOG(1) < 0 and
-        skips every later numeric factorisation of that factor, so a failed one is replaced
-        by a new factor (a new analysis). Where the workspace was too small (delayed pivots
-        filled beyond the analysis's estimate; on 2 ranks this varies from run to run),
-        ICNTL(14) is doubled and A factorised again."""
-        for attempt in range(self.policy.mumps_workspace_retries + 1):
-            F = pc.getFactorMatrix()
-            err = F.getMumpsInfog(1)
-            if err >= 0:
-                return F.getInertia()[0]
-            workspace = err in MUMPS_WORKSPACE_ERRORS and \
-                attempt < self.policy.mumps_workspace_retries
-            if workspace:
-                self._icntl[14] = 2 * max(F.getMumpsIcntl(14), 10)
-            pc.reset()
-            self.ksp.setOperators(A)
-            self._new_mumps_factor(pc)
-            if not workspace:
-                break
-            log.info("MUMPS workspace too small (INFOG(1) = %d): factorising again with "
-                     "ICNTL(14) = %d %%", err, self._icntl[14])
-            pc.setUp()
-        log.warning("MUMPS factorisation failed (INFOG(1) = %d)", err)
-        return -1
+        kept.factorise(A, self._stats, reuse=(
+            self.method == "newton" and self.lag_its > 0 and kept.ready and not kept.refactor
+            and kept.shift == 0 and self.ksp.getIterationNumber() <= self.lag_its))
 
     def _invalidate(self):
         self._K_ready = False
@@ -285,14 +327,14 @@ class Factorisation:
     def _factorise_at_equilibrium(self):
         """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a
         diagonal shift only where K is not positive definite there); K is assembled once."""
-        self._refactor = True
+        self.kept.refactor = True
         self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
         self.ksp.setOperators(self.A)
         self.ksp.getPC().setUp()
         self._set_state(self.u_eq)
-        self.factor = FactorState.EQUILIBRIUM if self._step_shift == 0 else FactorState.SHIFTED
+        self.kept.at_equilibrium()
 
-    def _equilibrium_moved(self):
-        """A new equilibrium: a factorisation of K at the former one is now an iterate's."""
-        if self.factor is FactorState.EQUILIBRIUM:
-            self.factor = FactorState.ITERATE
+    @property
+    def factor(self) -> FactorState:
+        """What the kept factorisation holds (`KeptFactor.state`)."""
+        return self.kept.state

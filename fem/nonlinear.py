@@ -116,7 +116,7 @@ class NonlinearSolves:
             # scaled to the error they leave at quasi-Newton's observed linear rate
             step, full = max(step, self._direction) * self._error_per_step(it), True
         else:   # a small step proves convergence only if it was a full Newton step (no shift)
-            full = self._step_shift == 0
+            full = self.kept.step_shift == 0
         if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
             return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
         if snes.getType() == "qn" and self._tangent_refresh and \
@@ -235,7 +235,7 @@ class NonlinearSolves:
         if moved:
             self.solved_xtol = self.xtol
             self._invalidate()
-            self._equilibrium_moved()
+            self.kept.moved()
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
         if st.goal_error > self.policy.goal_tolerance_mm:
@@ -268,7 +268,7 @@ class NonlinearSolves:
         cannot ask for a residual below roundoff); with no load (a refinement) only the step
         counts."""
         self.set_params(p)
-        self._shift = 0.0
+        self.kept.shift = 0.0
         load = self._load(p - p_from)
         total = load.duplicate()   # |df/dg g(p)|: a scale (sliding: df/dg of the last p0)
         self.dfdg.mult(compat.petsc_vec(self.goal), total)
@@ -282,14 +282,14 @@ class NonlinearSolves:
             self._iterate(p, start, quick, qn_only)
         finally:
             start.destroy()
-            self._shift, self._tangent_refresh = 0.0, False
+            self.kept.shift, self._tangent_refresh = 0.0, False
 
     def _iterate(self, p, start, quick: bool, qn_only: bool):
         """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
         `SolverError` when Newton fails even with the largest retry shift, or when
         quasi-Newton fails and ``qn_only``. ``quick``: one stall refresh only."""
         snes = self._method_snes()
-        shift = 0.0   # the Jacobian callback lets self._shift decay; this one only grows
+        shift = 0.0   # the Jacobian callback lets kept.shift decay; this one only grows
         refreshes, f_start = 0, None   # f_start: the residual norm at the start
         while True:
             self._refresh = None
@@ -309,7 +309,7 @@ class NonlinearSolves:
                     raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
-            self._refactor = True
+            self.kept.refactor = True
             why = self._refresh
             f_start = self._fnorms[0] if f_start is None else f_start
             if quick:
@@ -335,9 +335,9 @@ class NonlinearSolves:
                 if not sound:
                     start.copy(self._x)
                 continue
-            if shift >= self.shift_retry * self._diag_scale:   # continuation takes over
+            if shift >= self.shift_retry * self.kept.diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
-            shift = self._shift = max(100 * shift, 1e-2 * self._diag_scale)
+            shift = self.kept.shift = max(100 * shift, 1e-2 * self.kept.diag_scale)
             self._stats.shifts.append(shift)
             log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
                      self._last_its, shift)
@@ -359,4 +359,4 @@ class NonlinearSolves:
         u.copy(self.u_eq)
         self._set_state(self.u_eq)
         self._invalidate()
-        self._equilibrium_moved()
+        self.kept.moved()

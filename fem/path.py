@@ -76,7 +76,7 @@ class PathFollowing:
             x = self.admissible(self.u_eq, step)
             if x is None and follow:
                 x = self.follow(self.p, self.u_eq, step, p)
-                self._refactor = x is not None
+                self.kept.refactor = x is not None
             return x
         finally:
             step.destroy()

@@ -44,7 +44,7 @@ class TangentSolves:
                 if attempt:
                     ksp.setType("cg")
                 if not own and ksp.getIterationNumber() > self.policy.tangent_lag_its:
-                    self.factor = FactorState.STALE
+                    self.kept.state = FactorState.STALE
                 return ksp.getIterationNumber()
         raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
                           f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "

@@ -80,10 +80,11 @@ def test_a_shifted_factorisation_is_not_used_as_the_equilibriums(monkeypatch):
     scene.solve([0.5, -0.8])
     exact = [s.array.copy() for s in eq.sensitivity()]
     eq._invalidate()                               # drop the cached dx/dp
-    eq.factor = FactorState.ITERATE                # as if the equilibrium had moved
+    eq.kept.state = FactorState.ITERATE            # as if the equilibrium had moved
     pivots = iter([1])                             # one negative pivot, then the real ones
-    real_inertia, real_solve = eq._inertia, eq.solve_tangent
-    monkeypatch.setattr(eq, "_inertia", lambda pc, A: next(pivots, None) or real_inertia(pc, A))
+    real_inertia, real_solve = eq.kept.inertia, eq.solve_tangent
+    monkeypatch.setattr(eq.kept, "inertia",
+                        lambda pc, A: next(pivots, None) or real_inertia(pc, A))
     seen = []
     monkeypatch.setattr(eq, "solve_tangent",
                         lambda rhs, out: seen.append(eq.factor) or real_solve(rhs, out))
