@@ -94,7 +94,7 @@ OPTIONS = {
     # a plan's (`inverse.planner.PlanOptions`)
     "gtol": Range(0.0, 1e6),                                    # mm² per unit
     "step_tol": Range(0.0, 100.0),                              # units (mm, degrees)
-    "mu": Range(0.0, 1e6),                                      # relative to diag(H)
+    "mu": Range(0.0, 1e12),   # relative to diag(H); a resumed plan starts from its last mu
     "armijo": Range(0.0, 0.5, open_lo=True, open_hi=True),
     "max_backtracks": Range(0, MAX_BACKTRACKS, integer=True),
     "max_step": Range(0.0, 1e3, open_lo=True),                  # mm or degrees
