@@ -222,7 +222,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._assemble_couplings()
         self._dfdp = [self.dfdg.createVecLeft() for _ in range(self.n_params)]
         self._dfdp_at = None   # the p of self._dfdp
-        self.shift_max, self.shift_retry = opts.shift_max, opts.shift_retry
+        self.shift_retry = opts.shift_retry
         self._stats = SolveStats()
         self.ksp = self._make_snes(opts.prefix, opts.solver, opts.options)   # and self.kept
         self._f_ref = None

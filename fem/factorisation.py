@@ -208,8 +208,8 @@ class Factorisation:
         self._qn_snes = None
         ksp = self._newton_snes.getKSP()
         ksp.setOperators(self.A)
-        self.kept = KeptFactor(ksp, self.domain.comm, settings, prefix, self.shift_max,
-                               self.policy)
+        self.kept = KeptFactor(ksp, self.domain.comm, settings, prefix,
+                               self.settings.shift_max, self.policy)
         self.solver_name = solver
         return ksp
 

@@ -8,10 +8,9 @@ Why a run stays bounded: every solver loop counts iterations against a ceiling b
 ``max_it`` ≤ `MAX_SNES_ITERATIONS`; at most `MAX_BISECTIONS` continuation bisections, 3
 stall refreshes and 4 diagonal-shift retries per solve; a plan ≤ `MAX_PLAN_ITERATIONS`
 Gauss-Newton iterations of at most 6 × (`MAX_BACKTRACKS` + 1) line-search trials), and no
-tolerance can be
-tightened below its floor (`XTOL_FLOOR_MM`: a plan's forward xtol, ``ftol`` × the mean
-landmark distance, is floored there when the targets are reached; `FRTOL_FLOOR` for the
-residual).
+tolerance can be tightened below its floor (`XTOL_FLOOR_MM`: a plan's forward xtol, ``ftol``
+× the mean landmark distance, is floored there when the targets are reached; `FRTOL_FLOOR`
+for the residual).
 """
 
 from __future__ import annotations

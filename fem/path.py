@@ -36,7 +36,7 @@ class PathFollowing:
             return out
         rhs = self._load(-dp) if rhs is None else rhs
         own = self.own_tangent_pc
-        if self.factor is FactorState.NONE and not own:
+        if not self.kept.ready and not own:
             self._factorise_at_equilibrium()
         pc = self.ksp.getPC()
         if not own and self.factor is FactorState.EQUILIBRIUM and pc.getType() == "cholesky":
@@ -53,8 +53,7 @@ class PathFollowing:
         prediction and serves both)."""
         quasi_newton = self.method == "qn" and self.xtol >= self.policy.qn_min_xtol
         return bool(np.any(p != self.p) and np.isfinite(self.solved_xtol)
-                    and (self.factor is not FactorState.NONE or self.has_sensitivity
-                         or quasi_newton))
+                    and (self.kept.ready or self.has_sensitivity or quasi_newton))
 
     def first_order(self, p, follow: bool = False):
         """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None
@@ -174,7 +173,7 @@ class PathFollowing:
         p = self.set_params(p)
         self._stats = SolveStats()
         t0 = time.perf_counter()
-        if self.factor is FactorState.NONE:   # no factorisation yet: one at the equilibrium
+        if not self.kept.ready:   # no factorisation yet: one at the equilibrium
             self._factorise_at_equilibrium()
         self._f_ref = None   # residual tolerance relative to the start's residual
         if resume and self._relaxing:

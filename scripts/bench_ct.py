@@ -87,6 +87,7 @@ def ct(args) -> None:
     from scripts._bench import goal, header, plan_work, plot, table, write_section
 
     rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
+    built = {}   # (CT, res) -> ct_scene.py's report
     frames = {}   # CT -> its head frame's row
     shares = []   # [CT, resolution, skin, fat, lean tissue]
     reference, plan_ratios = {}, {}   # resolution -> (vertices, solve s); CT -> worst ratio
@@ -115,6 +116,7 @@ def ct(args) -> None:
                     continue
                 t = rep["timings_s"]
                 stages[(name, res)] = {k: t.get(k, 0.0) for k in STAGES}
+                built[(name, res)] = rep
                 frames.setdefault(name, [name, *(
                     f"{rep['head_tilt_deg'][k]:+.2f}" for k in ("pitch_deg", "roll_deg",
                                                                   "yaw_deg")),
@@ -200,7 +202,8 @@ def ct(args) -> None:
              "advance with the same physics; solve seconds (the equilibrium, not loading).", ""]
     body += table(["CT", "resolution", "CT vertices", "synthetic vertices", "CT forward s",
                    "synthetic forward s", "ratio"], ct_ratios)
-    cbct_rows = _cbct(goals) if "cranium" in args.cts.split(",") else []
+    cbct_rows = _cbct(goals, built.get(("cranium", "paper"))) \
+        if "cranium" in args.cts.split(",") else []
     body += ["", f"A CBCT-size volume: Cranium resampled (linearly) at {CBCT_MM:g} mm, to a "
              "paper scene by `ct_scene.py` in a fresh cache (its voxels are averaged in 2 x 2 "
              "x 2 blocks first, `meshes.volume.WORK_VOXEL_MM`), against Cranium's own "
@@ -240,9 +243,10 @@ def ct(args) -> None:
     write_section("ct", "\n".join(body), goals)
 
 
-def _cbct(goals: list) -> list:
+def _cbct(goals: list, own: dict | None = None) -> list:
     """Table rows of Cranium at its own voxels and resampled at `CBCT_MM`, each to a paper
-    scene in a fresh cache; appends the CBCT's goal rows to ``goals``."""
+    scene in a fresh cache (``own``: this run's ct_scene.py report of the first, where it
+    built it already); appends the CBCT's goal rows to ``goals``."""
     import numpy as np
     from scipy import ndimage
 
@@ -251,7 +255,7 @@ def _cbct(goals: list) -> list:
 
     if not CRANIUM_CT.exists():
         return [["cranium", "", f"absent: {CRANIUM_CT}"] + [""] * (len(STAGES) + 4)]
-    rows, reps = [], {}
+    rows, reps = [], {} if own is None else {"cranium": own}
     with tempfile.TemporaryDirectory() as d:
         v = read_volume(CRANIUM_CT)
         zoom = v.spacing / CBCT_MM
@@ -262,12 +266,16 @@ def _cbct(goals: list) -> list:
             np.array(v.array.shape) * zoom).astype(int)}
         del v
         for name, path in (("cranium", CRANIUM_CT), ("cranium, CBCT-size", cbct)):
-            with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
-                rep = _run("ct_scene.py", ["--ct", str(path), "--osteotomies",
-                                           str(CTS["cranium"][1]), "--resolution", "paper",
-                                           "--out", out],
-                           dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                                ORTHODIFF_CACHE=cache))
+            if name in reps:
+                rep = reps[name]
+            else:
+                with tempfile.TemporaryDirectory() as cache, \
+                        tempfile.TemporaryDirectory() as out:
+                    rep = _run("ct_scene.py", ["--ct", str(path), "--osteotomies",
+                                               str(CTS["cranium"][1]), "--resolution",
+                                               "paper", "--out", out],
+                               dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+                                    ORTHODIFF_CACHE=cache))
             if "error" in rep:
                 rows.append([name, "", rep["error"]] + [""] * (len(STAGES) + 4))
                 continue
