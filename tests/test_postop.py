@@ -92,6 +92,20 @@ def cranium(tmp_path_factory, request):
                  ROOT / "meshes" / "examples" / "cranium.json", P_CRANIUM)
 
 
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory, request):
+    """validate.py --measure-bone on one rank, run once per case for this module's tests:
+    ``measured(which)`` -> (completed process, out folder, report path)."""
+    runs = {}
+
+    def get(which):
+        if which not in runs:
+            runs[which] = _validate(tmp_path_factory.mktemp(f"measured_{which}"),
+                                    request.getfixturevalue(which), "--measure-bone")
+        return runs[which]
+    return get
+
+
 def _validate(tmp_path, case, *args, n=1, name="v", post=None, pre=True):
     out = tmp_path / name
     rep = out / "report.json"
@@ -103,7 +117,7 @@ def _validate(tmp_path, case, *args, n=1, name="v", post=None, pre=True):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("which", ["synthetic", pytest.param("cranium", marks=needs_cranium)])
-def test_ct_validation_recovers_the_truth(tmp_path, request, which):
+def test_ct_validation_recovers_the_truth(tmp_path, request, measured, which):
     """validate.py --measure-bone on the post-operative CT: the registration undoes the
     misplacement, and each segment's measured motion is its true one, within 0.3 mm (over
     the skin, over the segment's bone) and 0.3 degrees; the prediction from the measured
@@ -111,7 +125,7 @@ def test_ct_validation_recovers_the_truth(tmp_path, request, which):
     written for simulate.py, which, given them, puts the landmarks where the true movements
     do (within 0.3 mm); on Cranium the landmarks built on both skins agree within 1 mm."""
     case = request.getfixturevalue(which)
-    r, out, rep = _validate(tmp_path, case, "--measure-bone")
+    r, out, rep = measured(which)
     assert r.returncode == 0, r.stderr[-2000:]
     report = json.loads(rep.read_text())
     TM = np.array(report["registration"]["transform"]) @ case["M"]
@@ -160,11 +174,11 @@ def test_ct_validation_with_wrong_movements_reports_the_error_the_test_computes(
 
 @pytest.mark.slow
 @pytest.mark.mpi
-def test_ct_validation_is_the_same_on_two_ranks(tmp_path, synthetic):
+def test_ct_validation_is_the_same_on_two_ranks(tmp_path, synthetic, measured):
     """validate.py --measure-bone under mpirun -n 2 reports what one rank does."""
     reports = []
-    for n in (1, 2):
-        r, _, rep = _validate(tmp_path, synthetic, "--measure-bone", n=n, name=f"n{n}")
+    for r, _, rep in (measured("synthetic"),
+                      _validate(tmp_path, synthetic, "--measure-bone", n=2, name="n2")):
         assert r.returncode == 0, r.stderr[-2000:]
         reports.append(json.loads(rep.read_text()))
     assert reports[0]["segments"]

@@ -99,6 +99,17 @@ def _scan(truth, path, seed=0, misplace=MISPLACE, mirror=False, crop=True, noise
     return M
 
 
+@pytest.fixture(scope="module")
+def validated(tmp_path_factory, cranium):
+    """validate.py on one rank with the true movements on Cranium's scan (`_scan`, default
+    misplacement and noise), run once for this module's tests: (M, completed process, out
+    folder, report path, scan path)."""
+    d = tmp_path_factory.mktemp("validated")
+    scan = d / "scan.ply"
+    M = _scan(cranium, scan)
+    return (M, *_validate(d, cranium, scan, *_p(P_CRANIUM)), scan)
+
+
 def _validate(tmp_path, truth, scan, *params, n=1, name="v"):
     out = tmp_path / name
     rep = out / "report.json"
@@ -127,14 +138,12 @@ def test_stable_skin_does_not_move(request, which):
 
 
 @needs_cranium
-def test_validation_recovers_the_misplacement_and_the_outcome(tmp_path, cranium):
+def test_validation_recovers_the_misplacement_and_the_outcome(cranium, validated):
     """validate.py with the true movements on Cranium: the registration undoes the scan's
     misplacement within 0.3 mm and 0.3 degrees, and the prediction meets the scan within
     0.3 mm on average (the scan's noise is 0.1 mm); the report has the issue's keys, the
     picture and the XDMF are written."""
-    scan = tmp_path / "scan.ply"
-    M = _scan(cranium, scan)
-    r, out, rep = _validate(tmp_path, cranium, scan, *_p(P_CRANIUM))
+    M, r, out, rep, _ = validated
     assert r.returncode == 0, r.stderr[-2000:]
     report = json.loads(rep.read_text())
     T = np.array(report["registration"]["transform"])
@@ -193,13 +202,12 @@ def test_wrong_movements_report_the_error_the_test_computes(tmp_path, cranium):
 
 @needs_cranium
 @pytest.mark.mpi
-def test_validation_is_the_same_on_two_ranks(tmp_path, cranium):
+def test_validation_is_the_same_on_two_ranks(tmp_path, cranium, validated):
     """validate.py under mpirun -n 2 reports what one rank does."""
-    scan = tmp_path / "scan.ply"
-    _scan(cranium, scan)
+    scan = validated[-1]
     reports = []
-    for n in (1, 2):
-        r, _, rep = _validate(tmp_path, cranium, scan, *_p(P_CRANIUM), n=n, name=f"n{n}")
+    for r, _, rep in (validated[1:4], _validate(tmp_path, cranium, scan, *_p(P_CRANIUM),
+                                                n=2, name="n2")):
         assert r.returncode == 0, r.stderr[-2000:]
         reports.append(json.loads(rep.read_text()))
     assert_same_reports(*reports)
