@@ -50,10 +50,11 @@ explore: install
 	@test -f $(PLAN) || $(PY) scripts/demo.py
 	$(PY) scripts/explore_web.py --plan-report $(PLAN)
 
-# Every tier (tests/conftest.py): unit, integration on the tiny heads, scripts, browser.
+# Every tier (tests/conftest.py): unit, integration on the tiny heads, scripts, browser; a
+# pytest-xdist worker per core, each test module on one worker (its fixtures built once).
 test: install
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 # The unit tier alone (each part on a cube or a block, no head: under a minute).
 check: install

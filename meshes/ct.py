@@ -34,6 +34,7 @@ import hashlib
 import json
 import logging
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -440,8 +441,11 @@ def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool =
     if anatomy is None:
         anatomy, info = build(ct_path, scene_file, resolution, labelmap)
         anatomy.save(path)
-        tmp = info_path.with_suffix(".json.part")
-        tmp.write_text(json.dumps(info))
+        # a unique part file: two processes building the same scene (parallel test
+        # workers, two users' runs) must not rename each other's
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json.part")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(json.dumps(info))
         os.replace(tmp, info_path)
         info["cached"] = False
     anatomy.occlusion = read_occlusion(spec.get("occlusion"), scene_file)

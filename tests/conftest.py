@@ -14,14 +14,21 @@ uses a tiny head (the ``tiny_anatomy`` fixture, directly or not) and ``unit`` wh
 not. ``mpi`` (runs ``mpirun -n 2`` itself) is marked besides the tier.
 """
 
-from mpi4py import MPI
-
 import gc
+import os
 
 import numpy as np
 import pytest
 
 TIERS = ("unit", "integration", "scripts", "browser")
+
+if "PYTEST_XDIST_WORKER" in os.environ:
+    # `make test` runs a worker per core: an ``mpirun -n 2`` a test starts shares the cores
+    # with the other worker, and Open MPI's busy-waiting ranks would take turns spinning
+    os.environ.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
+# MPI is imported in the tests only: pytest-xdist's controller, which starts the workers,
+# must not be an MPI process itself (its singleton's OMPI_* and PMIX_* variables, inherited
+# by the workers, make every mpirun a test starts exit 1 at once)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -41,6 +48,8 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def _collective_cleanup():
     """Collective destructors line up across ranks (dolfinx python/test/conftest.py)."""
+    from mpi4py import MPI
+
     yield
     gc.collect()
     MPI.COMM_WORLD.Barrier()
