@@ -224,7 +224,7 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self._dfdp_at = None   # the p of self._dfdp
         self.shift_retry = opts.shift_retry
         self._stats = SolveStats()
-        self.ksp = self._make_snes(opts.prefix, opts.solver, opts.options)   # and self.kept
+        self.ksp, self.kept = self._make_snes(opts.prefix, opts.solver, opts.options)
         self._f_ref = None
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
         self._obj_val = None                 # its energy (None: not valid)

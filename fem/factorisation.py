@@ -195,7 +195,8 @@ class Factorisation:
         self.A.setNearNullSpace(ns)
 
     def _make_snes(self, prefix: str, solver: str, options: dict):
-        """Newton's SNES, which owns the KSP (factorisation) that every solve shares; preset
+        """Newton's SNES, which owns the KSP (factorisation) that every solve shares, and
+        the `KeptFactor` that owns that factorisation: (ksp, kept); preset
         options under ``prefix`` (the command line wins). ``options`` (PETSc options without
         a prefix) reach whichever SNES runs: Newton's here, each quasi-Newton one when made
         (`_fresh_qn_snes`, under ``<prefix>qn_``)."""
@@ -208,10 +209,9 @@ class Factorisation:
         self._qn_snes = None
         ksp = self._newton_snes.getKSP()
         ksp.setOperators(self.A)
-        self.kept = KeptFactor(ksp, self.domain.comm, settings, prefix,
-                               self.settings.shift_max, self.policy)
         self.solver_name = solver
-        return ksp
+        return ksp, KeptFactor(ksp, self.domain.comm, settings, prefix,
+                               self.settings.shift_max, self.policy)
 
     def _build_snes(self, settings: dict, max_it: int, ksp=None, prefix: str | None = None):
         """A SNES with our callbacks and line search checks, configured from ``settings``

@@ -155,6 +155,27 @@ class Forms:
         self._set_state(x)
         return self._finite(x) and self.min_det_F() > 0
 
+    def energy(self, x: PETSc.Vec) -> float:
+        """E_NH + E_A at the state x (displacement, mm), µJ; +inf where x inverts an
+        element. u is left at x. Collective."""
+        return self._objective(None, x)
+
+    def residual(self, x: PETSc.Vec, out: PETSc.Vec) -> None:
+        """out = f(x) = dE/dx at the state x (mN); Dirichlet rows hold x minus its boundary
+        value. u is left at x. Collective."""
+        self._residual(None, x, out)
+
+    def jacobian(self, x: PETSc.Vec, out: PETSc.Mat) -> None:
+        """out = K(x) = df/dx at the state x (mN/mm), Dirichlet rows and columns identity.
+        u is left at x. Collective."""
+        self._set_state(x)
+        self._assemble_jacobian(out)
+
+    def load(self, dp) -> PETSc.Vec:
+        """df/dp · dp (dp: (Np,)) as a new PETSc vector, mN: the load a step in p puts on
+        the tissue at the current state. Collective."""
+        return self._load(dp)
+
     def _objective(self, snes, x):
         """Energy at x, µJ (kPa mm³); +inf where any cell is inverted (ln det F is NaN at a
         P1 cell's single quadrature point; P2 is also checked at the vertices). The line

@@ -100,14 +100,17 @@ OPTIONS = {
 }
 
 
-def check(name: str, value, flag: str | None = None):
-    """``value`` if it lies in ``OPTIONS[name]``, else `InputError` naming ``flag`` (default
-    the keyword) and the allowed range."""
-    r = OPTIONS[name]
+def check(name: str, value, flag: str | None = None, ranges: dict | None = None,
+          numbers_only: bool = False):
+    """``value`` if it lies in ``ranges[name]`` (default `OPTIONS`), else `InputError`
+    naming ``flag`` (default the keyword) and the allowed range. A script's option may be
+    the text of a number; ``numbers_only`` (a setting made in code) refuses text."""
+    r = (OPTIONS if ranges is None else ranges)[name]
     try:
         v = float(value)
     except (TypeError, ValueError):
         v = math.nan
-    if isinstance(value, bool) or not r.contains(v):
+    if isinstance(value, bool) or (numbers_only and not isinstance(value, (int, float))) \
+            or not r.contains(v):
         raise InputError(f"{flag or name} must be {r.text()}, got {value!r}")
     return int(v) if r.integer else v

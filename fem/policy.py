@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from fem.limits import Range, check
+
 #: Linear solver presets (PETSc options under the object's prefix); override on the command line.
 PRESETS = {
     "direct": {"ksp_type": "cg", "ksp_rtol": 1e-8, "ksp_max_it": 100,
@@ -118,31 +120,27 @@ class SolverPolicy:
     goal_failure_mm: float = 1.0
 
     def __post_init__(self):
-        """Every setting in its range (`POLICY_RANGES`), else `InputError` naming it."""
-        from meshes.errors import InputError
-
+        """Every setting in its range (`POLICY_RANGES`, `fem.limits.check`), else
+        `InputError` naming it."""
         for f in dataclasses.fields(self):
-            v, (lo, hi, open_lo) = getattr(self, f.name), POLICY_RANGES[f.name]
-            number = isinstance(v, (int, float)) and not isinstance(v, bool)
-            kind = "an integer" if f.type == "int" else "a number"
-            if not (number and (lo < v if open_lo else lo <= v) and v <= hi
-                    and (f.type != "int" or float(v).is_integer())):
-                raise InputError(f"SolverPolicy.{f.name} must be {kind} in "
-                                 f"{'(' if open_lo else '['}{lo:g}, {hi:g}], got {v!r}")
+            check(f.name, getattr(self, f.name), f"SolverPolicy.{f.name}", POLICY_RANGES,
+                  numbers_only=True)
 
 
-#: Each `SolverPolicy` setting's range: (low, high, low excluded). Counts of steps that a
-#: loop needs at least once (halvings, stall window, path iterations) start at 1.
+#: Each `SolverPolicy` setting's range. Counts of steps that a loop needs at least once
+#: (halvings, stall window, path iterations) start at 1.
 POLICY_RANGES = {
-    "qn_min_xtol": (0.0, 1.0, True), "stall_its": (1, 1000, False),
-    "stall_ratio": (0.0, 1.0, True), "qn_refreshes": (0, 100, False),
-    "quick_refreshes": (0, 100, False), "quick_refresh_progress": (0.0, 1.0, True),
-    "rate_max": (0.0, 0.99, True), "max_halvings": (1, 100, False),
-    "mumps_workspace_retries": (0, 20, False), "qn_bisections": (0, 20, False),
-    "tangent_lag_its": (0, 1000, False), "tangent_refresh_xtols": (0.0, 1e6, True),
-    "path_substep_mm": (0.0, 100.0, True), "path_iterations": (1, 1000, False),
-    "min_substep": (0.0, 100.0, True), "goal_tolerance_mm": (0.0, 100.0, True),
-    "goal_failure_mm": (0.0, 100.0, True)}
+    name: Range(lo, hi, integer=True) if kind == "count" else Range(lo, hi, open_lo=True)
+    for name, (kind, lo, hi) in {
+        "qn_min_xtol": ("above", 0.0, 1.0), "stall_its": ("count", 1, 1000),
+        "stall_ratio": ("above", 0.0, 1.0), "qn_refreshes": ("count", 0, 100),
+        "quick_refreshes": ("count", 0, 100), "quick_refresh_progress": ("above", 0.0, 1.0),
+        "rate_max": ("above", 0.0, 0.99), "max_halvings": ("count", 1, 100),
+        "mumps_workspace_retries": ("count", 0, 20), "qn_bisections": ("count", 0, 20),
+        "tangent_lag_its": ("count", 0, 1000), "tangent_refresh_xtols": ("above", 0.0, 1e6),
+        "path_substep_mm": ("above", 0.0, 100.0), "path_iterations": ("count", 1, 1000),
+        "min_substep": ("above", 0.0, 100.0), "goal_tolerance_mm": ("above", 0.0, 100.0),
+        "goal_failure_mm": ("above", 0.0, 100.0)}.items()}
 
 DEFAULT_POLICY = SolverPolicy()
 
@@ -170,7 +168,6 @@ class EquilibriumOptions:
     policy: SolverPolicy = DEFAULT_POLICY
 
     def __post_init__(self):
-        from fem.limits import check
         from meshes.errors import InputError
 
         if not isinstance(self.prefix, str) or not self.prefix:

@@ -41,7 +41,7 @@ def test_states_of_a_solve_a_sensitivity_and_a_restore():
     S = eq.sensitivity()
     assert eq.factor is FactorState.EQUILIBRIUM and _made(eq) == made + 1
     assert eq.sensitivity() is S and _made(eq) == made + 1   # cached, not refactorised
-    step = eq.tangent_step(np.array([0.1, 0.0]), eq._load(-np.array([0.1, 0.0])))
+    step = eq.tangent_step(np.array([0.1, 0.0]), eq.load(-np.array([0.1, 0.0])))
     np.testing.assert_allclose(step.array, 0.1 * S[0].array, rtol=1e-8, atol=1e-12)
     assert _made(eq) == made + 1
     step.destroy()
@@ -58,7 +58,7 @@ def test_a_slow_tangent_solve_makes_it_stale_and_the_next_refactorises():
     scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, tangent_lag_its=0))
     eq = scene.eq
     scene.solve([0.5, -0.8])
-    rhs, out = eq._load(-np.array([0.1, 0.0])), eq.u_eq.duplicate()
+    rhs, out = eq.load(-np.array([0.1, 0.0])), eq.u_eq.duplicate()
     made = _made(eq)
     assert eq.solve_tangent(rhs, out) >= 1
     assert eq.factor is FactorState.STALE and _made(eq) == made + 1

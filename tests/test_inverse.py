@@ -290,9 +290,9 @@ def test_fit_surface_recovers_the_treatment_of_a_predicted_face(scene):
     pred = SkinPredictor(scene)
     dp = np.array([0.5, 0.0, -0.3, 0.0, 0.4, 0.0])
     surface = pred.predict(dp)
-    made = scene.eq._stats.factorisations
+    made = scene.eq.stats.factorisations
     skin, lm = pred.corrected(dp)
-    assert np.array_equal(scene.eq.p, P0) and scene.eq._stats.factorisations == made
+    assert np.array_equal(scene.eq.p, P0) and scene.eq.stats.factorisations == made
     scene.solve(P0 + dp)
     true = pred.op.apply(scene.eq.u_eq.array)
     err_plain = np.linalg.norm(surface - true, axis=1)
@@ -327,9 +327,9 @@ def test_corrected_prediction_follows_the_path_where_first_order_inverts(mandibl
                 dict(dp=dp, iterations=0)):
         with pytest.raises(InputError):
             pred.corrected(**bad)
-    made = eq._stats.factorisations
+    made = eq.stats.factorisations
     skin, lm = pred.corrected(dp)
-    assert eq._stats.factorisations == made and not np.any(eq.p) and eq.min_det_F() > 0
+    assert eq.stats.factorisations == made and not np.any(eq.p) and eq.min_det_F() > 0
     halved = pred.corrected(dp, substep_mm=np.inf)[0]   # one step, inverts: halved
     mandible_scene.solve(dp)
     true = pred.op.apply(eq.u_eq.array)

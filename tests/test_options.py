@@ -161,7 +161,7 @@ def test_no_option_makes_a_run_unbounded(script, data):
 @pytest.mark.parametrize("setting, value", [
     ("max_halvings", 0), ("stall_its", 2.5), ("stall_ratio", 0.0), ("rate_max", 1.0),
     ("qn_bisections", True), ("tangent_lag_its", -1), ("path_substep_mm", float("nan")),
-    ("goal_failure_mm", 0.0)])
+    ("goal_failure_mm", 0.0), ("stall_ratio", "0.5")])
 def test_a_solver_policy_out_of_range_is_refused(setting, value):
     """`SolverPolicy` checks each setting where it is made (``max_halvings=0`` once left a
     variable unbound in the line search): one clear error naming it."""
