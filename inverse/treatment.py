@@ -302,8 +302,7 @@ class Treatment:
                             dT[i] = left @ mats[f][1][m] @ right
                     left = left @ factors[j]
                 dT_all[seg] = H @ dT @ H_inv
-            # back to the scene's frame as I + H (T - I) H⁻¹: a segment held still (T = I)
-            # stays exactly still, so rest is an equilibrium in a tilted frame as well
+            # to the scene's frame; I + H (T - I) H⁻¹ keeps a segment held still exactly still
             T_all[seg] = np.eye(4) + H @ (T_all[seg] - np.eye(4)) @ H_inv
         return (T_all, dT_all) if derivatives else T_all
 
