@@ -86,7 +86,7 @@ def ct(args) -> None:
 
     from scripts._bench import goal, header, plan_work, plot, table, write_section
 
-    rows, ratio_rows, goals, stages = [], [], [], {}   # stages: (CT, res) -> {stage: s}
+    rows, ratio_rows, goals = [], [], []
     built = {}   # (CT, res) -> ct_scene.py's report
     frames = {}   # CT -> its head frame's row
     shares = []   # [CT, resolution, skin, fat, lean tissue]
@@ -115,7 +115,6 @@ def ct(args) -> None:
                     rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 7))
                     continue
                 t = rep["timings_s"]
-                stages[(name, res)] = {k: t.get(k, 0.0) for k in STAGES}
                 built[(name, res)] = rep
                 frames.setdefault(name, [name, *(
                     f"{rep['head_tilt_deg'][k]:+.2f}" for k in ("pitch_deg", "roll_deg",
@@ -166,7 +165,7 @@ def ct(args) -> None:
                                               limit=GOAL_CT_RATIO, source="issue 30"))
                     rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
                                  f"{rep['min_quality']:.3f}",
-                                 *(f"{v:.1f}" for v in stages[(name, res)].values()),
+                                 *(f"{t.get(k, 0.0):.1f}" for k in STAGES),
                                  f"**{t['total']:.1f}**", contact, material, fwd, pl,
                                  ratio])
                     if "error" not in sim:
@@ -232,9 +231,9 @@ def ct(args) -> None:
 
     def draw(plt):
         plt.figure(figsize=(6, 3))
-        labels, left = [f"{c} {r}" for c, r in stages], [0.0] * len(stages)
+        labels, left = [f"{c} {r}" for c, r in built], [0.0] * len(built)
         for k in STAGES:
-            w = [st[k] for st in stages.values()]
+            w = [rep["timings_s"].get(k, 0.0) for rep in built.values()]
             plt.barh(labels, w, left=left, label=k)
             left = [a + b for a, b in zip(left, w)]
         plt.xlabel("ct_scene.py s")

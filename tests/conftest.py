@@ -26,9 +26,6 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     # `make test` runs a worker per core: an ``mpirun -n 2`` a test starts shares the cores
     # with the other worker, and Open MPI's busy-waiting ranks would take turns spinning
     os.environ.setdefault("OMPI_MCA_mpi_yield_when_idle", "1")
-# MPI is imported in the tests only: pytest-xdist's controller, which starts the workers,
-# must not be an MPI process itself (its singleton's OMPI_* and PMIX_* variables, inherited
-# by the workers, make every mpirun a test starts exit 1 at once)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -48,6 +45,9 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def _collective_cleanup():
     """Collective destructors line up across ranks (dolfinx python/test/conftest.py)."""
+    # imported here, in the workers: pytest-xdist's controller loads this file and must not
+    # become an MPI process (its singleton's OMPI_* and PMIX_* variables, inherited by the
+    # workers, make every mpirun a test starts exit 1 at once)
     from mpi4py import MPI
 
     yield

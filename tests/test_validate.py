@@ -102,12 +102,12 @@ def _scan(truth, path, seed=0, misplace=MISPLACE, mirror=False, crop=True, noise
 @pytest.fixture(scope="module")
 def validated(tmp_path_factory, cranium):
     """validate.py on one rank with the true movements on Cranium's scan (`_scan`, default
-    misplacement and noise), run once for this module's tests: (M, completed process, out
-    folder, report path, scan path)."""
+    misplacement and noise), run once for this module's tests: (completed process, out
+    folder, report path), under ``run``, the scan's misplacement ``M`` and its ``scan`` path."""
     d = tmp_path_factory.mktemp("validated")
     scan = d / "scan.ply"
     M = _scan(cranium, scan)
-    return (M, *_validate(d, cranium, scan, *_p(P_CRANIUM)), scan)
+    return {"M": M, "scan": scan, "run": _validate(d, cranium, scan, *_p(P_CRANIUM))}
 
 
 def _validate(tmp_path, truth, scan, *params, n=1, name="v"):
@@ -143,7 +143,7 @@ def test_validation_recovers_the_misplacement_and_the_outcome(cranium, validated
     misplacement within 0.3 mm and 0.3 degrees, and the prediction meets the scan within
     0.3 mm on average (the scan's noise is 0.1 mm); the report has the issue's keys, the
     picture and the XDMF are written."""
-    M, r, out, rep, _ = validated
+    M, (r, out, rep) = validated["M"], validated["run"]
     assert r.returncode == 0, r.stderr[-2000:]
     report = json.loads(rep.read_text())
     T = np.array(report["registration"]["transform"])
@@ -204,10 +204,9 @@ def test_wrong_movements_report_the_error_the_test_computes(tmp_path, cranium):
 @pytest.mark.mpi
 def test_validation_is_the_same_on_two_ranks(tmp_path, cranium, validated):
     """validate.py under mpirun -n 2 reports what one rank does."""
-    scan = validated[-1]
     reports = []
-    for r, _, rep in (validated[1:4], _validate(tmp_path, cranium, scan, *_p(P_CRANIUM),
-                                                n=2, name="n2")):
+    for r, _, rep in (validated["run"], _validate(tmp_path, cranium, validated["scan"],
+                                                  *_p(P_CRANIUM), n=2, name="n2")):
         assert r.returncode == 0, r.stderr[-2000:]
         reports.append(json.loads(rep.read_text()))
     assert_same_reports(*reports)
