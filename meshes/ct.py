@@ -54,8 +54,7 @@ from meshes.anatomy import (
     tet_quality,
 )
 from meshes.errors import MeshError
-from meshes.frame import estimate as estimate_frame
-from meshes.frame import from_spec
+from meshes.frame import estimate_on_scan, from_spec
 from meshes.landmarks import prominence_mm, skin_landmarks
 from meshes.osteotomy import Osteotomies, Plane, resolve_plane_files
 from meshes.synthetic import RESOLUTIONS, cache_dir
@@ -268,7 +267,8 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     timings = {}
     t = time.perf_counter()
     is_map = labelmap or spec.get("labels") is not None
-    volume = read_volume(ct_path).coarsened(labels=is_map)   # a CBCT's voxels averaged
+    scan = read_volume(ct_path)
+    volume = scan.coarsened(labels=is_map)   # a CBCT's voxels averaged
     timings["read"] = time.perf_counter() - t
 
     bone_hu = None if is_map else float(spec.get("bone_hu", seg.BONE_HU))
@@ -280,8 +280,9 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
 
     if frame is None:   # on the whole CT, before the crop
         t = time.perf_counter()
-        frame = estimate_frame(volume, masks(volume)[1], bone_hu)
+        frame = estimate_on_scan(scan, lambda v: masks(v)[1], bone_hu)
         timings["frame"] = time.perf_counter() - t
+    del scan
     cuts = cuts.with_midsagittal(Plane(tuple(frame.origin), tuple(frame.rotation[:, 0])))
     t = time.perf_counter()
     lo, hi, free = _crop_box(spec, volume)

@@ -52,7 +52,7 @@ import numpy as np
 
 from meshes import segment as seg
 from meshes.errors import MeshError
-from meshes.frame import estimate, from_spec
+from meshes.frame import estimate_on_scan, from_spec
 from meshes.teeth import TEETH_HU
 from meshes.volume import Volume, rotate_volume
 
@@ -181,8 +181,9 @@ def nasal_floor(hv: Volume, head_origin, teeth_h: np.ndarray, z_from: float,
     return np.asarray(out_y), np.asarray(out_z)
 
 
-def propose(volume: Volume, base: dict | None = None, where: str = "") -> dict:
-    """The proposed scene file (a JSON object) of a CT in HU (module docstring): ``base``
+def propose(scan: Volume, base: dict | None = None, where: str = "") -> dict:
+    """The proposed scene file (a JSON object) of a CT in HU at its own voxels (module
+    docstring; a CBCT's are averaged here as `meshes.ct.build` does): ``base``
     (a scene file's JSON, or None) gives the thresholds and the frame, and its settings other
     than planes and crop are kept. `MeshError` with one line where a rule finds nothing."""
     from scipy import stats
@@ -195,9 +196,10 @@ def propose(volume: Volume, base: dict | None = None, where: str = "") -> dict:
                         "on the CT")
     skin_hu = float(base.get("skin_hu", seg.SKIN_HU))
     bone_hu = float(base.get("bone_hu", seg.BONE_HU))
+    volume = scan.coarsened()
     body, bone = seg.labels_from_ct(volume, skin_hu, bone_hu)
-    frame = from_spec(base["frame"], where) if base.get("frame") is not None \
-        else estimate(volume, bone, bone_hu)
+    frame = from_spec(base["frame"], where) if base.get("frame") is not None else \
+        estimate_on_scan(scan, lambda v: seg.labels_from_ct(v, skin_hu, bone_hu)[1], bone_hu)
     ijk, teeth, teeth_mm3 = find_teeth(volume, body, frame)
     shape = np.array(volume.array.shape)
     cut_by_fov = bool(np.any((ijk < FOV_EDGE_VOXELS) | (ijk >= shape - FOV_EDGE_VOXELS)))

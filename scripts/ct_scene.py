@@ -64,7 +64,7 @@ def propose(args, comm) -> int:
     if comm.rank == 0:
         try:
             base = None if args.osteotomies is None else read_scene_file(args.osteotomies)
-            spec = proposal(read_volume(args.ct).coarsened(), base,
+            spec = proposal(read_volume(args.ct), base,
                             args.osteotomies or "")
         except MeshError as e:
             spec = str(e)
