@@ -11,32 +11,48 @@ the test suite on a 0.9+ install and fixing what this map got wrong.
 
 from __future__ import annotations
 
+import logging
+import os
+import time
+
 import dolfinx
 import dolfinx.fem.petsc as fem_petsc
+import dolfinx.jit
 import numpy as np
 
 VERSION = tuple(int(v) for v in dolfinx.__version__.split(".")[:2])
 NEW_API = VERSION >= (0, 9)
+
+log = logging.getLogger(__name__)
+
+# Seconds a process waits for a JIT module another process is compiling (FFCx's `timeout`,
+# 10 s by default), and the age past which such a claim is a dead one. FFCx claims a module
+# by creating its C file exclusively and marks it ready with `<module>.c.cached`; a process
+# killed between the two (Ctrl-C during a first solve) leaves a claim that every later run
+# waited 10 s for and then failed on: CI run 40 lost seven tests to one such C file. The
+# largest form here (sliding, tissues) compiles in under 2 s alone and under 5 s with three
+# processes compiling at once on 2 cores, so a claim 60 s old is dead.
+JIT_WAIT_S = 60
 
 
 def vector_space(mesh, degree: int = 1):
     """Continuous Lagrange vector space of the given degree on ``mesh``."""
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
-    return dolfinx.fem.VectorFunctionSpace(mesh, ("CG", degree))
+    return jit(lambda _: dolfinx.fem.VectorFunctionSpace(mesh, ("CG", degree)))
 
 
 def tensor_space(mesh):
     """Piecewise-constant (DG0) 3×3 tensors on the cells of ``mesh``."""
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, ("DG", 0, (3, 3)))
-    return dolfinx.fem.TensorFunctionSpace(mesh, ("DG", 0))
+    return jit(lambda _: dolfinx.fem.TensorFunctionSpace(mesh, ("DG", 0)))
 
 
 def scalar_space(mesh, family: str = "DG", degree: int = 0):
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, (family, degree))
-    return dolfinx.fem.FunctionSpace(mesh, (family, degree))
+    return jit(lambda _: dolfinx.fem.FunctionSpace(mesh, (family, degree)))
 
 
 def cpp_mesh(mesh):
@@ -49,12 +65,47 @@ def petsc_vec(u):
     return u.x.petsc_vec if NEW_API else u.vector
 
 
+def _release_dead_claims() -> list:
+    """Set aside (as FFCx does a failed compile, to ``.c.failed``) every JIT claim of the
+    cache older than ``JIT_WAIT_S`` and never marked ready; the paths released."""
+    cache = dolfinx.jit.get_parameters()["cache_dir"]
+    released = []
+    for c in sorted(cache.glob("libffcx_*.c")):
+        try:
+            if (c.with_suffix(".c.cached").exists()
+                    or time.time() - c.stat().st_mtime < JIT_WAIT_S):
+                continue
+            os.replace(c, c.with_suffix(".c.failed"))
+        except FileNotFoundError:      # another process released it or finished it first
+            continue
+        released.append(c)
+        log.warning("released a JIT claim no process finished in %g s: %s", JIT_WAIT_S, c)
+    return released
+
+
+def jit(compile_):
+    """``compile_(jit_params)`` (a dolfinx form or Expression), waiting ``JIT_WAIT_S`` for a
+    module another process compiles, and compiling again once if a dead claim blocked it.
+    Every rank of a parallel compile gets the same error, so every rank retries. Spaces
+    ignore the parameters: their element modules compile in well under FFCx's 10 s wait."""
+    params = {"timeout": int(JIT_WAIT_S)}   # FFCx counts whole seconds
+    try:
+        return compile_(params)
+    except (TimeoutError, RuntimeError) as e:   # RuntimeError: mpi_jit's, for every rank
+        if "JIT compilation timed out" not in str(e):
+            raise
+        _release_dead_claims()
+        return compile_(params)
+
+
 def form(ufl_form, options: dict | None = None):
     """Compile a UFL form with FFCx options (``form_compiler_params`` in 0.5)."""
     options = options or {}
     if NEW_API:
-        return dolfinx.fem.form(ufl_form, form_compiler_options=options)
-    return dolfinx.fem.form(ufl_form, form_compiler_params=options)
+        return jit(lambda p: dolfinx.fem.form(ufl_form, form_compiler_options=options,
+                                              jit_options=p))
+    return jit(lambda p: dolfinx.fem.form(ufl_form, form_compiler_params=options,
+                                          jit_params=p))
 
 
 def assemble_matrix(A, a, bcs=(), diagonal: float = 1.0):
@@ -85,7 +136,10 @@ assemble_vector = fem_petsc.assemble_vector
 def eval_expression(ufl_expr, points, mesh):
     """A function of no arguments returning ``ufl_expr`` (scalar) at reference ``points``
     (P, 3) of every local cell (ghosts included), shape (n_cells, P); compiled once."""
-    expr = dolfinx.fem.Expression(ufl_expr, points)
+    if NEW_API:
+        expr = jit(lambda p: dolfinx.fem.Expression(ufl_expr, points, jit_options=p))
+    else:
+        expr = jit(lambda p: dolfinx.fem.Expression(ufl_expr, points, jit_params=p))
     tdim = mesh.topology.dim
     imap = mesh.topology.index_map(tdim)
     cells = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
