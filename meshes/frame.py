@@ -312,13 +312,10 @@ def symmetry_plane(volume, bone: np.ndarray):
     return (n if n[0] >= 0 else -n), point, float(np.sqrt(res.fun))
 
 
-#: The frame is found on voxels averaged to at least this (mm, `estimate_on_scan`) from the
-#: CT's own: the bone's symmetry and the FH's porions and orbitales need no finer grid.
-#: Cranium at 0.4 mm (`bench.py ct`), AMD EPYC, 1 rank: on the 0.8 mm working grid
-#: (`meshes.volume.WORK_VOXEL_MM`) the frame took 15.0 s of 32.9 s and found porion_R 12 mm
-#: medial of the one on Cranium's own voxels (0.96 x 0.96 x 1.5 mm); on 1.2 mm voxels it took
-#: 5.9 s, every point within 1.8 mm of those. CTs of 0.6 mm voxels or more (Cranium, headsq,
-#: every test CT) are used as they are.
+#: The frame is found on voxels averaged to at least this (mm, `estimate_on_scan`): Cranium at
+#: 0.4 mm (`bench.py ct`, 1 rank): on the 0.8 mm working grid the frame took 15.0 s of 32.9 s
+#: and found porion_R 12 mm from the one on Cranium's own voxels; on 1.2 mm, 5.9 s and every
+#: point within 1.8 mm (docs/decisions.md). Coarser CTs (Cranium, headsq) are used as they are.
 FRAME_VOXEL_MM = 1.2
 
 #: Porion and orbitale on a CT (`frankfort_points`), mm and HU. Air below AIR_HU. The bony ear
@@ -458,9 +455,8 @@ def _near(mask: np.ndarray, axis: int, sign: int, n: int) -> np.ndarray:
 
 
 def estimate_on_scan(volume, bone_of, bone_hu: float | None = None) -> HeadFrame:
-    """`estimate` on a whole scan at its own voxels (`meshes.volume.Volume`), averaged to
-    `FRAME_VOXEL_MM` first (a label map: ``bone_hu`` None); ``bone_of(v)`` is the bone mask of
-    a volume v. Both `meshes.ct.build` and `meshes.propose.propose` find the frame so."""
+    """`estimate` on a whole scan (`meshes.volume.Volume`) averaged to `FRAME_VOXEL_MM` (a
+    label map: ``bone_hu`` None); ``bone_of(v)``: the bone mask of a volume v."""
     v = volume.coarsened(FRAME_VOXEL_MM, labels=bone_hu is None)
     return estimate(v, bone_of(v), bone_hu)
 
@@ -469,8 +465,7 @@ def estimate(volume, bone: np.ndarray, bone_hu: float | None = None) -> HeadFram
     """The frame of a CT (`meshes.volume.Volume`, the whole scan) with its bone mask: the MSP
     by symmetry; the FH through the porions and the left orbitale (the right where the left is
     not found) where ``bone_hu`` is given (a CT in HU) and `frankfort_points` finds them,
-    else the scan's axial plane, with a warning that says so (module docstring). A CBCT's
-    fine voxels are averaged first (`estimate_on_scan`, by the caller)."""
+    else the scan's axial plane, with a warning that says so (module docstring)."""
     n, origin, rms = symmetry_plane(volume, bone)
     frame = from_axes(n, np.array([0.0, 0.0, 1.0]), origin,
                       {"midsagittal": "estimated", "horizontal": "assumed"})
