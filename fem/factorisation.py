@@ -32,7 +32,7 @@ MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
 class FactorState(enum.Enum):
     """What the kept factorisation (`KeptFactor`, the shared KSP's PC) holds: a
     factorisation at an iterate (`KeptFactor.factorise`) gives ITERATE, one at the
-    equilibrium (`Factorisation._factorise_at_equilibrium`, then `KeptFactor.at_equilibrium`)
+    equilibrium (`Factorisation.factorise_at_equilibrium`, then `KeptFactor.at_equilibrium`)
     EQUILIBRIUM or SHIFTED, a new equilibrium (`KeptFactor.moved`) turns EQUILIBRIUM into
     ITERATE, and a slow tangent solve (`fem.tangent`) gives STALE."""
 
@@ -240,6 +240,12 @@ class Factorisation:
             opts.delValue(prefix + k)
         return snes
 
+    @property
+    def snes(self) -> dict:
+        """The PETSc SNES objects, ``{"newton": ..., "qn": ...}`` (the quasi-Newton one of the
+        last solve, None before one), to read their options and tolerances, not to change."""
+        return {"newton": self._newton_snes, "qn": self._qn_snes}
+
     def _method_snes(self):
         """The SNES for the next solve: Newton when asked for, or when xtol is below
         `SolverPolicy.qn_min_xtol`. PETSc 3.18's SNESQN keeps its L-BFGS pairs from one solve to the
@@ -312,6 +318,10 @@ class Factorisation:
         self._K_ready = False
         if self.turn is not None:   # df/dp depends on u where tissue slides
             self._dfdp_at = None
+        self.forget_sensitivities()
+
+    def forget_sensitivities(self):
+        """Drop the cached dx/dp (`sensitivity`): its next use, or `tangent_step`'s, solves."""
         for v in self._sens or []:
             v.destroy()
         self._sens = None
@@ -324,9 +334,16 @@ class Factorisation:
             self._assemble_jacobian(self.K)
         self._K_ready = True
 
-    def _factorise_at_equilibrium(self):
+    def tangent_matrix(self) -> PETSc.Mat:
+        """K = df/du at the equilibrium (N×N, kPa·mm; Dirichlet rows identity), assembled
+        once per equilibrium and owned by the engine (do not destroy or change it)."""
+        self._assemble_K()
+        return self.K
+
+    def factorise_at_equilibrium(self):
         """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a
-        diagonal shift only where K is not positive definite there); K is assembled once."""
+        diagonal shift only where K is not positive definite there); K is assembled once.
+        The tangent solves do so when they need to; callers force it (tests, timing)."""
         self.kept.refactor = True
         self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
         self.ksp.setOperators(self.A)

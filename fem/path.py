@@ -37,7 +37,7 @@ class PathFollowing:
         rhs = self._load(-dp) if rhs is None else rhs
         own = self.own_tangent_pc
         if not self.kept.ready and not own:
-            self._factorise_at_equilibrium()
+            self.factorise_at_equilibrium()
         pc = self.ksp.getPC()
         if not own and self.factor is FactorState.EQUILIBRIUM and pc.getType() == "cholesky":
             pc.apply(rhs, out)
@@ -202,7 +202,7 @@ class PathFollowing:
         self._stats = SolveStats()
         t0 = time.perf_counter()
         if not self.kept.ready:   # no factorisation yet: one at the equilibrium
-            self._factorise_at_equilibrium()
+            self.factorise_at_equilibrium()
         self._f_ref = None   # residual tolerance relative to the start's residual
         if resume and self._relaxing:
             snes = self._qn_snes

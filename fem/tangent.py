@@ -37,7 +37,7 @@ class TangentSolves:
         for attempt in range(2):
             if not own and (attempt or far or self.factor in (FactorState.NONE,
                                                                FactorState.STALE)):
-                self._factorise_at_equilibrium()
+                self.factorise_at_equilibrium()
             ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
             ksp.solve(rhs, out)
             if ksp.getConvergedReason() > 0:
@@ -68,7 +68,7 @@ class TangentSolves:
         if pc.getType() != "cholesky" or self.n_params == 0 or self.own_tangent_pc:
             return None
         if self.factor is not FactorState.EQUILIBRIUM:
-            self._factorise_at_equilibrium()
+            self.factorise_at_equilibrium()
             if self.factor is FactorState.SHIFTED:   # the tangent solves handle it
                 return None
         n, N = self.u_eq.getLocalSize(), self.u_eq.getSize()

@@ -79,11 +79,11 @@ def test_tangent_ready_solve_serves_the_adjoint_without_a_factorisation(mandible
     assert (stats[False].factorisations, stats[True].factorisations) == (1, 2)
     assert np.abs(points[True] - points[False]).max() < 1e-3   # the same equilibrium, mm
     eq, calls = scene.eq, []
-    refactorise = eq._factorise_at_equilibrium
-    eq._factorise_at_equilibrium = lambda: calls.append(1) or refactorise()
+    refactorise = eq.factorise_at_equilibrium
+    eq.factorise_at_equilibrium = lambda: calls.append(1) or refactorise()
     g = obj.gradient()
     assert calls == [] and eq.tangent_ksp.getIterationNumber() > 1   # reused, iterated
-    eq._factorise_at_equilibrium()   # now with K at the equilibrium itself
+    eq.factorise_at_equilibrium()   # now with K at the equilibrium itself
     assert stats[True].factorisations == 2   # the solve's stats stay the solve's
     g_exact = obj.gradient()
     assert eq.tangent_ksp.getIterationNumber() <= 2
@@ -121,8 +121,7 @@ def test_kkt_and_reduced_system_give_the_same_step(scene):
     obj = _objective(scene, weights={"Pg": 3.0, "Li": 0.5}, tikhonov=0.02)
     scene.solve(P0)
     eq, op = scene.eq, obj.op
-    eq._assemble_K()
-    indptr, indices, data = eq.K.getValuesCSR()
+    indptr, indices, data = eq.tangent_matrix().getValuesCSR()
     n = len(indptr) - 1
     K = sp.csr_matrix((data, indices, indptr), shape=(n, n))
     G = np.stack([g.array for g in eq.dfdp], axis=1)
@@ -353,7 +352,7 @@ def test_block_sensitivity_equals_column_solves(mandible_only, tiny_anatomy, sol
     with monkeypatch.context() as m:   # the block path makes no tangent solve
         m.setattr(eq, "tangent_step", lambda dp: pytest.fail("a column solve"))
         block = [s.array.copy() for s in eq.sensitivity()]
-    eq._invalidate()   # forget dx/dp: tangent_step solves again
+    eq.forget_sensitivities()   # tangent_step solves again
     for e, b in zip(np.eye(eq.n_params), block):
         col = eq.tangent_step(e)
         assert np.abs(b - col.array).max() < 1e-10 * np.abs(col.array).max()

@@ -231,9 +231,9 @@ def test_options_reach_whichever_snes_runs_under_one_prefix_each(mandible_only, 
     scene = mandible_only(tiny_anatomy, options={"snes_stol": stol})
     eq = scene.eq
     scene.solve(scene.param_vector({"mandible.advance_mm": 2.0}))
-    assert eq._qn_snes.getType() == "qn" and eq._qn_snes.getTolerances()[2] == stol
-    assert eq._newton_snes.getTolerances()[2] == stol
-    prefixes = {eq._newton_snes.getOptionsPrefix(), eq._qn_snes.getOptionsPrefix(),
+    assert eq.snes["qn"].getType() == "qn" and eq.snes["qn"].getTolerances()[2] == stol
+    assert eq.snes["newton"].getTolerances()[2] == stol
+    prefixes = {eq.snes["newton"].getOptionsPrefix(), eq.snes["qn"].getOptionsPrefix(),
                 eq.tangent_ksp.getOptionsPrefix()}
     assert prefixes == {"orthodiff_fwd_", "orthodiff_fwd_qn_", "orthodiff_fwd_tangent_"}
     eq.destroy()
@@ -242,8 +242,8 @@ def test_options_reach_whichever_snes_runs_under_one_prefix_each(mandible_only, 
     try:
         scene = mandible_only(tiny_anatomy)
         scene.solve(scene.param_vector({"mandible.advance_mm": 2.0}))
-        assert scene.eq._qn_snes.getTolerances()[2] == 2 * stol
-        assert scene.eq._newton_snes.getTolerances()[2] != 2 * stol
+        assert scene.eq.snes["qn"].getTolerances()[2] == 2 * stol
+        assert scene.eq.snes["newton"].getTolerances()[2] != 2 * stol
         scene.eq.destroy()
     finally:
         opts.delValue("orthodiff_fwd_qn_snes_stol")
