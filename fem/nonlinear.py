@@ -15,7 +15,7 @@ import numpy as np
 
 from fem import compat
 from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
-from meshes.errors import PredictionInverts, SolverError
+from meshes.errors import SolverError
 
 log = logging.getLogger(__name__)
 
@@ -149,9 +149,8 @@ class NonlinearSolves:
         """Equilibrium at parameters p (Np,), warm-started from the current one (at the
         current p, only when ``xtol`` is now tighter than `solved_xtol`: it refines).
         ``quick``: quasi-Newton only, from an admissible first-order prediction; where that
-        prediction inverts an element, raise `PredictionInverts` (with the fraction of the
-        step it trusts, `trusted_fraction`), where quasi-Newton fails `SolverError`, at once
-        (no Newton, no continuation), e.g. for a line-search trial that may be shortened.
+        prediction inverts an element or quasi-Newton fails, raise `SolverError` at once (no
+        Newton, no continuation), e.g. for a line-search trial that may be shortened.
         ``tangent``: a few tangent solves (an adjoint gradient) follow at this equilibrium;
         a slow quasi-Newton solve then refactorises once near convergence
         (`SolverPolicy.tangent_refresh_xtols`), and they reuse that factorisation.
@@ -189,12 +188,10 @@ class NonlinearSolves:
         if start is None:
             start = self.first_order(p, follow=not quick) if predict else None
         if quick and start is None and predict and self._can_predict(p):
-            fraction = self.trusted_fraction(p)
             self.set_params(self.p)   # the scene stays at its equilibrium
             self._set_state(self.u_eq)
-            raise PredictionInverts(f"the first-order prediction at p = "
-                                    f"{np.round(p, 4).tolist()} inverts an element: no quick "
-                                    "solve is tried", fraction)
+            raise SolverError(f"the first-order prediction at p = {np.round(p, 4).tolist()} "
+                              "inverts an element: no quick solve is tried")
         p_done, p_start = self.p.copy(), self.p.copy()
         u_good = self.u_eq.copy()   # self.u may have been changed by the caller
         self._set_state(start or u_good)

@@ -63,8 +63,13 @@ class PathFollowing:
         Collective."""
         if not self._can_predict(p):
             return None
-        step = self._first_order_step(p)
-        if step is None:
+        try:
+            # nonlinear goals: the tissue's response to the exact goals at p (one solve
+            # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
+            # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
+            step = self.tangent_step(p - self.p, None if self.goals.linear and
+                                     self.turn is None else self._goal_load(p))
+        except SolverError:
             return None
         try:
             x = self.admissible(self.u_eq, step)
@@ -74,39 +79,6 @@ class PathFollowing:
             return x
         finally:
             step.destroy()
-
-    def _first_order_step(self, p):
-        """dx/dp (p - p0) (a new PETSc vector, mm), or None where the tangent solve fails."""
-        try:
-            # nonlinear goals: the tissue's response to the exact goals at p (one solve
-            # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
-            # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
-            return self.tangent_step(p - self.p, None if self.goals.linear and
-                                     self.turn is None else self._goal_load(p))
-        except SolverError:
-            return None
-
-    def trusted_fraction(self, p) -> float:
-        """Of the first-order step to p, the longest fraction t (to 2^-`trust_bisections`)
-        whose prediction x(p0) + t dx/dp (p - p0) compresses no element by more than
-        `SolverPolicy.trust_compression`; 0 where none is (or there is no prediction). The
-        state u is left at the equilibrium. Collective."""
-        step = self._first_order_step(p) if self._can_predict(p) else None
-        if step is None:
-            return 0.0
-        lo, hi = 0.0, 1.0
-        try:
-            for _ in range(self.policy.trust_bisections):
-                t = (lo + hi) / 2
-                x = self.u_eq.copy()
-                x.axpy(t, step)
-                ok = self._sound(x) and self.min_det_F() >= 1.0 - self.policy.trust_compression
-                x.destroy()
-                lo, hi = (t, hi) if ok else (lo, t)
-            return lo
-        finally:
-            step.destroy()
-            self._set_state(self.u_eq)
 
     def follow(self, p0, x0: PETSc.Vec, step: PETSc.Vec, p, iterations: int | None = None,
                substep_mm: float | None = None):

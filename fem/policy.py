@@ -68,14 +68,6 @@ class SolverPolicy:
             refactorising there (class3-asym paper plan, 2 ranks: a first full step's trial
             stalled at 0.96 of its start residual, refactorised with shifts and failed
             anyway after 13 s).
-        trust_compression: where a quick solve's first-order prediction inverts an element,
-            it reports the fraction of its step whose prediction compresses no element by more
-            than this (det F >= 1 - it), found by `trust_bisections` bisections, and a plan's
-            next trial is that fraction where it is below a halving (`inverse.planner`).
-            Cranium's LeFort I at paper, sliding, tissues, 1 rank, GN step 1 (7.1 mm advance,
-            7.3 mm impaction): the full step's prediction inverted, the half step's
-            compressed by 45 % and its quick trial stalled twice and failed after 10.2 s;
-            the quarter step's (21 %) was solved at once.
         rate_max: largest linear rate quasi-Newton's stopping test assumes (the error a
             step leaves at rate ρ is ρ/(1-ρ) of it): a factorisation from far away converged
             at ρ ≈ 0.7 and stopped 4.7e-3 mm from the equilibrium without the scaling.
@@ -126,8 +118,6 @@ class SolverPolicy:
     min_substep: float = 1.0 / 64
     goal_tolerance_mm: float = 0.05
     goal_failure_mm: float = 1.0
-    trust_compression: float = 0.25
-    trust_bisections: int = 8
 
     def __post_init__(self):
         """Every setting in its range (`POLICY_RANGES`, `fem.limits.check`), else
@@ -147,8 +137,7 @@ POLICY_RANGES = {
         "quick_refreshes": ("count", 0, 100), "quick_refresh_progress": ("above", 0.0, 1.0),
         "rate_max": ("above", 0.0, 0.99), "max_halvings": ("count", 1, 100),
         "mumps_workspace_retries": ("count", 0, 20), "qn_bisections": ("count", 0, 20),
-        "tangent_lag_its": ("count", 0, 1000), "trust_compression": ("above", 0.0, 1.0),
-        "trust_bisections": ("count", 1, 50), "tangent_refresh_xtols": ("above", 0.0, 1e6),
+        "tangent_lag_its": ("count", 0, 1000), "tangent_refresh_xtols": ("above", 0.0, 1e6),
         "path_substep_mm": ("above", 0.0, 100.0), "path_iterations": ("count", 1, 1000),
         "min_substep": ("above", 0.0, 100.0), "goal_tolerance_mm": ("above", 0.0, 100.0),
         "goal_failure_mm": ("above", 0.0, 100.0)}.items()}

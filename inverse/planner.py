@@ -14,12 +14,10 @@ Eliminating dx = -K⁻¹ G dp = S dp and λ gives the reduced system with ``S_T 
 which is what we solve (Np is small); D is Levenberg-Marquardt damping. Box bounds are
 handled by freezing parameters at a bound whose gradient points outward and projecting trial
 points. An Armijo backtracking line search on T accepts the step; every trial is a forward
-solve warm-started from the first-order prediction; a trial whose prediction inverts an
-element is shortened to the fraction of it the prediction is trusted on
-(`fem.policy.SolverPolicy.trust_compression`) where that is below a halving. The plan
-stops before a step whose predicted decrease is below ``ftol`` x T (the decrease it would
-stop after): Cranium's LeFort I at paper, at its best (T 1.059 mm², two parameters for two
-landmarks' six coordinates), spent 54 trials and 74 s failing to resolve such a step.
+solve warm-started from the first-order prediction. The plan stops before a step whose
+predicted decrease is below ``ftol`` x T (the decrease it would stop after): Cranium's
+LeFort I at paper, at its best (T 1.059 mm², two parameters for two landmarks' six
+coordinates), spent 54 trials and 74 s failing to resolve such a step.
 """
 
 from __future__ import annotations
@@ -33,7 +31,7 @@ import numpy as np
 from fem.limits import XTOL_FLOOR_MM, check
 from inverse.objective import Objective
 from inverse.treatment import FTOL
-from meshes.errors import InputError, PredictionInverts, SolverError
+from meshes.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
 
@@ -231,19 +229,16 @@ def _gauss_newton(scene, objective, p0, bounds, opts: PlanOptions, callback):
             alpha = 1.0
             for _ in range(opts.max_backtracks + 1):
                 q = np.clip(p + alpha * dp, lo, hi)
-                shrink = 0.5
                 try:   # long trials may be cut short: quasi-Newton only, no fallback
                     its += forward(q, "line_search", quick=alpha > QUICK_ALPHA)
                     T_q = objective.value()
                 except SolverError as e:
                     log.info("trial p = %s failed: %s", np.round(q, 4).tolist(), e)
                     T_q = np.inf
-                    if isinstance(e, PredictionInverts) and e.fraction > 0:
-                        shrink = min(shrink, e.fraction)   # the fraction it trusts
                 if T_q <= T + opts.armijo * float(g @ (q - p)):
                     accepted = True
                     break
-                alpha *= shrink
+                alpha *= 0.5
             if accepted:
                 break
             eq.restore(base)

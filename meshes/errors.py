@@ -18,13 +18,3 @@ class MeshError(InputError):
 
 class SolverError(OrthodiffError, RuntimeError):
     """A solver failed even after regularisation and continuation."""
-
-
-class PredictionInverts(SolverError):
-    """A quick solve's first-order prediction inverts an element (nothing was solved).
-    ``fraction``: of the step to the prediction, the longest whose prediction compresses no
-    element by more than `fem.policy.SolverPolicy.trust_compression` (0 where none is)."""
-
-    def __init__(self, message: str, fraction: float):
-        super().__init__(message)
-        self.fraction = fraction
