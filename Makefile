@@ -54,7 +54,7 @@ explore: install
 # pytest-xdist worker per core, each test module on one worker (its fixtures built once).
 test: install
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -n auto --dist loadfile
+	$(PY) -m pytest -q -n auto --dist loadfile --durations=25
 
 # The unit tier alone (each part on a cube or a block, no head: under a minute).
 check: install
