@@ -205,7 +205,8 @@ def ct(args) -> None:
         if "cranium" in args.cts.split(",") else []
     body += ["", f"A CBCT-size volume: Cranium resampled (linearly) at {CBCT_MM:g} mm, to a "
              "paper scene by `ct_scene.py` in a fresh cache (its voxels are averaged in 2 x 2 "
-             "x 2 blocks first, `meshes.volume.WORK_VOXEL_MM`), against Cranium's own "
+             "x 2 blocks first, `meshes.volume.WORK_VOXEL_MM`, and in 3 x 3 x 3 for the head "
+             "frame, `meshes.frame.FRAME_VOXEL_MM`), against Cranium's own "
              "voxels in the same run; peak memory is the process's resident set.", ""]
     body += table(["CT", "voxels", "voxel mm", "vertices", "min quality", "pitch, roll, yaw",
                    *STAGES, "total s", "peak MB"], cbct_rows)
