@@ -65,11 +65,10 @@ def petsc_vec(u):
     return u.x.petsc_vec if NEW_API else u.vector
 
 
-def _release_dead_claims() -> list:
+def _release_dead_claims():
     """Set aside (as FFCx does a failed compile, to ``.c.failed``) every JIT claim of the
-    cache older than ``JIT_WAIT_S`` and never marked ready; the paths released."""
+    cache older than ``JIT_WAIT_S`` and never marked ready, with a warning naming it."""
     cache = dolfinx.jit.get_parameters()["cache_dir"]
-    released = []
     for c in sorted(cache.glob("libffcx_*.c")):
         try:
             if (c.with_suffix(".c.cached").exists()
@@ -78,15 +77,14 @@ def _release_dead_claims() -> list:
             os.replace(c, c.with_suffix(".c.failed"))
         except FileNotFoundError:      # another process released it or finished it first
             continue
-        released.append(c)
         log.warning("released a JIT claim no process finished in %g s: %s", JIT_WAIT_S, c)
-    return released
 
 
 def jit(compile_):
     """``compile_(jit_params)`` (a dolfinx form or Expression), waiting ``JIT_WAIT_S`` for a
     module another process compiles, and compiling again once if a dead claim blocked it.
-    Every rank of a parallel compile gets the same error, so every rank retries. Spaces
+    Every rank of a parallel compile gets the same error, so every rank retries (whether
+    it or another released the claim: `mpi_jit` compiles on rank 0 first). Spaces
     ignore the parameters: their element modules compile in well under FFCx's 10 s wait."""
     params = {"timeout": int(JIT_WAIT_S)}   # FFCx counts whole seconds
     try:

@@ -382,6 +382,7 @@ def test_a_fresh_machine_sees_no_compiler_lines(tmp_path):
     assert loud.returncode == 0 and "build_ext" in loud.stdout + loud.stderr
 
 
+@pytest.mark.unit
 def test_a_claim_left_by_a_killed_compile_does_not_block_the_next(tmp_path, monkeypatch):
     """A process killed while FFCx compiled a form leaves the module's C file without its
     ready file; the next compile waits ``JIT_WAIT_S``, sets the dead claim aside and compiles
