@@ -315,7 +315,7 @@ def symmetry_plane(volume, bone: np.ndarray):
 #: The frame is found on voxels averaged to at least this (mm, `estimate_on_scan`): Cranium at
 #: 0.4 mm (`bench.py ct`, 1 rank): on the 0.8 mm working grid the frame took 15.0 s of 32.9 s
 #: and found porion_R 12 mm from the one on Cranium's own voxels; on 1.2 mm, 5.9 s and every
-#: point within 1.8 mm (docs/decisions.md). Coarser CTs (Cranium, headsq) are used as they are.
+#: point within 1.8 mm (docs/decisions.md). Voxels of 0.6 mm or more are used as they are.
 FRAME_VOXEL_MM = 1.2
 
 #: Porion and orbitale on a CT (`frankfort_points`), mm and HU. Air below AIR_HU. The bony ear
