@@ -11,6 +11,8 @@ the test suite on a 0.9+ install and fixing what this map got wrong.
 
 from __future__ import annotations
 
+from mpi4py import MPI
+
 import logging
 import os
 import time
@@ -39,20 +41,20 @@ def vector_space(mesh, degree: int = 1):
     """Continuous Lagrange vector space of the given degree on ``mesh``."""
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, ("Lagrange", degree, (mesh.geometry.dim,)))
-    return jit(lambda _: dolfinx.fem.VectorFunctionSpace(mesh, ("CG", degree)))
+    return jit(lambda _: dolfinx.fem.VectorFunctionSpace(mesh, ("CG", degree)), mesh.comm)
 
 
 def tensor_space(mesh):
     """Piecewise-constant (DG0) 3×3 tensors on the cells of ``mesh``."""
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, ("DG", 0, (3, 3)))
-    return jit(lambda _: dolfinx.fem.TensorFunctionSpace(mesh, ("DG", 0)))
+    return jit(lambda _: dolfinx.fem.TensorFunctionSpace(mesh, ("DG", 0)), mesh.comm)
 
 
 def scalar_space(mesh, family: str = "DG", degree: int = 0):
     if NEW_API:
         return dolfinx.fem.functionspace(mesh, (family, degree))
-    return jit(lambda _: dolfinx.fem.FunctionSpace(mesh, (family, degree)))
+    return jit(lambda _: dolfinx.fem.FunctionSpace(mesh, (family, degree)), mesh.comm)
 
 
 def cpp_mesh(mesh):
@@ -80,17 +82,23 @@ def _release_dead_claims():
         log.warning("released a JIT claim no process finished in %g s: %s", JIT_WAIT_S, c)
 
 
-def jit(compile_):
-    """``compile_(jit_params)`` (a dolfinx form or Expression), waiting ``JIT_WAIT_S`` for a
-    module another process compiles, and compiling again once if a dead claim blocked it.
-    Every rank of a parallel compile gets the same error, so every rank retries (whether
-    it or another released the claim: `mpi_jit` compiles on rank 0 first). Spaces
-    ignore the parameters: their element modules compile in well under FFCx's 10 s wait."""
+def jit(compile_, comm):
+    """``compile_(jit_params)`` (a dolfinx form, Expression or space on ``comm``), waiting
+    ``JIT_WAIT_S`` for a module another process compiles, and compiling again once if a
+    dead claim blocked it. In parallel, dolfinx's `mpi_jit` compiles on rank 0 first and
+    fails on every rank together, the others without the reason: the ranks agree on it, and
+    all retry or none. Spaces ignore the parameters: their element modules compile in well
+    under FFCx's 10 s wait."""
     params = {"timeout": int(JIT_WAIT_S)}   # FFCx counts whole seconds
     try:
         return compile_(params)
-    except (TimeoutError, RuntimeError) as e:   # RuntimeError: mpi_jit's, for every rank
-        if "JIT compilation timed out" not in str(e):
+    except (TimeoutError, RuntimeError) as e:
+        timed_out = "JIT compilation timed out" in str(e)
+        if isinstance(e, RuntimeError):
+            if "Failed just-in-time compilation" not in str(e):   # not mpi_jit's
+                raise
+            timed_out = comm.allreduce(timed_out, op=MPI.LOR)
+        if not timed_out:
             raise
         _release_dead_claims()
         return compile_(params)
@@ -99,11 +107,12 @@ def jit(compile_):
 def form(ufl_form, options: dict | None = None):
     """Compile a UFL form with FFCx options (``form_compiler_params`` in 0.5)."""
     options = options or {}
+    comm = ufl_form.ufl_domains()[0].ufl_cargo().comm
     if NEW_API:
         return jit(lambda p: dolfinx.fem.form(ufl_form, form_compiler_options=options,
-                                              jit_options=p))
+                                              jit_options=p), comm)
     return jit(lambda p: dolfinx.fem.form(ufl_form, form_compiler_params=options,
-                                          jit_params=p))
+                                          jit_params=p), comm)
 
 
 def assemble_matrix(A, a, bcs=(), diagonal: float = 1.0):
@@ -135,9 +144,9 @@ def eval_expression(ufl_expr, points, mesh):
     """A function of no arguments returning ``ufl_expr`` (scalar) at reference ``points``
     (P, 3) of every local cell (ghosts included), shape (n_cells, P); compiled once."""
     if NEW_API:
-        expr = jit(lambda p: dolfinx.fem.Expression(ufl_expr, points, jit_options=p))
+        expr = jit(lambda p: dolfinx.fem.Expression(ufl_expr, points, jit_options=p), mesh.comm)
     else:
-        expr = jit(lambda p: dolfinx.fem.Expression(ufl_expr, points, jit_params=p))
+        expr = jit(lambda p: dolfinx.fem.Expression(ufl_expr, points, jit_params=p), mesh.comm)
     tdim = mesh.topology.dim
     imap = mesh.topology.index_map(tdim)
     cells = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)

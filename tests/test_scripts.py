@@ -415,6 +415,42 @@ def test_a_claim_left_by_a_killed_compile_does_not_block_the_next(tmp_path, monk
     assert claim.with_suffix(".c.failed").exists() and claim.with_suffix(".c.cached").exists()
 
 
+#: Compiles one form with `fem.compat.JIT_WAIT_S` = 1 on COMM_WORLD and prints its integral.
+_COMPILE_ONE_FORM = """
+from mpi4py import MPI
+import dolfinx, ufl
+from fem import compat
+compat.JIT_WAIT_S = 1
+mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 2, 2, 2)
+x = ufl.SpatialCoordinate(mesh)
+v = mesh.comm.allreduce(dolfinx.fem.assemble_scalar(compat.form((x[0] ** 5 + x[2]) * ufl.dx)))
+print(f"integral {v:.12f}")
+"""
+
+
+@pytest.mark.unit
+@pytest.mark.mpi
+def test_a_dead_claim_is_released_on_every_rank(tmp_path):
+    """Under ``mpirun -n 2`` dolfinx compiles on rank 0 and fails on both ranks together, rank
+    1 without the reason: both ranks must agree to retry after the dead claim is released
+    (each rank deciding alone hung one waiting for the other)."""
+    import time
+
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path), PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-c", _COMPILE_ONE_FORM]
+    first = _run(cmd, env=env, timeout=120)
+    assert first.returncode == 0, first.stderr[-2000:]
+    (claim,) = (tmp_path / "fenics").glob("libffcx_forms_*.c")
+    for f in claim.parent.glob(claim.stem + ".*"):   # killed after its claim: only the C file
+        if f != claim:
+            f.unlink()
+    os.utime(claim, (time.time() - 10,) * 2)
+    again = _run(_mpirun(2) + cmd, env=env, timeout=120)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert again.stdout.split() == first.stdout.split() * 2       # both ranks, same value
+    assert "released a JIT claim" in again.stderr and claim.with_suffix(".c.failed").exists()
+
+
 def test_plan_to_a_named_goal(tmp_path):
     """plan.py --goal: a built-in goal on the scene's own landmarks (midface-advance: Sn 3 mm
     forward, as `make demo` plans the real face) is reported and reached by the LeFort I
