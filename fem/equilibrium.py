@@ -31,7 +31,9 @@ sensitivity solves.
 The engine's rooms, one job each (mixins of `Equilibrium`, which owns the state):
 `fem.forms` (the energy and its forms), `fem.factorisation` (the kept factorisation),
 `fem.nonlinear` (the nonlinear strategies, `SolveStats`), `fem.path` (path following and
-predictions), `fem.tangent` (tangent and sensitivity solves); their tuned settings are one
+predictions), `fem.tangent` (tangent and sensitivity solves); and two parts that own their
+state: `fem.factorisation.KeptFactor` (what the kept factorisation holds) and
+`fem.stopping.StoppingTest` (every SNES solve's stopping test). Their tuned settings are one
 `fem.policy.SolverPolicy`.
 """
 
@@ -56,6 +58,7 @@ from fem.material import HOMOGENEOUS, NeoHookean, Tissues, neo_hookean
 from fem.nonlinear import NonlinearSolves, SolveStats
 from fem.path import PathFollowing
 from fem.policy import EquilibriumOptions
+from fem.stopping import StoppingTest
 from fem.tangent import TangentSolves
 from meshes.errors import InputError
 
@@ -225,16 +228,10 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self.shift_retry = opts.shift_retry
         self._stats = SolveStats()
         self.ksp, self.kept = self._make_snes(opts.prefix, opts.solver, opts.options)
-        self._f_ref = None
+        self.stop = StoppingTest(self._uvec, self.policy, self.kept)
         self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
         self._obj_val = None                 # its energy (None: not valid)
         self._w, self._r = self._uvec.duplicate(), self.b.duplicate()   # line-search trial
-        self._x_prev = self._uvec.duplicate()  # the previous SNES iterate (step size)
-        self._direction = np.inf             # inf-norm of the last search direction, mm
-        self._fnorms = []                    # residual norms of this SNES solve
-        self._refresh = None                 # why it stopped to refactorise: stalled, tangent
-        self._tangent_refresh = False        # armed by solve(tangent=True), see _converged
-        self._relaxing = False               # self._qn_snes is relax()'s, pairs kept
         self._last_its = 0                   # iterations of the last SNES solve
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
@@ -300,9 +297,10 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
 
     def destroy(self):
         self._invalidate()
-        self._drop_qn_snes()
+        for snes in (self._qn_snes, self._relax_snes):
+            self._drop_snes(snes)
         for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self._x_prev, self._obj_x, self._w, self._r, self.u_eq,
+                    self._x, self.stop, self._obj_x, self._w, self._r, self.u_eq,
                     self.dfdg, self.dfdR,
                     *self._dfdp]:
             if obj is not None:

@@ -34,7 +34,7 @@ class FactorState(enum.Enum):
     factorisation at an iterate (`KeptFactor.factorise`) gives ITERATE, one at the
     equilibrium (`Factorisation.factorise_at_equilibrium`, then `KeptFactor.at_equilibrium`)
     EQUILIBRIUM or SHIFTED, a new equilibrium (`KeptFactor.moved`) turns EQUILIBRIUM into
-    ITERATE, and a slow tangent solve (`fem.tangent`) gives STALE."""
+    ITERATE, and a slow tangent solve (`fem.tangent`, `KeptFactor.slowed`) gives STALE."""
 
     NONE = "none"                  # nothing factorised yet
     ITERATE = "iterate"            # K at an iterate, or at a former equilibrium
@@ -163,6 +163,19 @@ class KeptFactor:
         if self.state is FactorState.EQUILIBRIUM:
             self.state = FactorState.ITERATE
 
+    def slowed(self):
+        """It slowed a tangent solve (more CG iterations than `tangent_lag_its`): STALE."""
+        self.state = FactorState.STALE
+
+    def request_refactor(self, refactor: bool = True):
+        """Whether the next Jacobian must refactorise (e.g. the state moved along a path, or
+        a solve stalled)."""
+        self.refactor = refactor
+
+    def set_shift(self, shift: float):
+        """The diagonal shift (K's units) the next factorisation starts from."""
+        self.shift = shift
+
 
 class _ApplyOther:
     """Python PC context that applies another, already built PC."""
@@ -206,7 +219,8 @@ class Factorisation:
         settings = {**METHODS["newton"], **self._search, **PRESETS[solver], **options}
         self._newton_snes = self._build_snes(settings, METHOD_DEFAULTS["newton"]["max_it"]
                                              if self.method != "newton" else self.max_it)
-        self._qn_snes = None
+        self._qn_snes = None      # the last solve's quasi-Newton SNES
+        self._relax_snes = None   # relax()'s, its L-BFGS pairs kept for a path's next substep
         ksp = self._newton_snes.getKSP()
         ksp.setOperators(self.A)
         self.solver_name = solver
@@ -229,11 +243,11 @@ class Factorisation:
         snes.setFunction(lambda s, x, b: self._residual(s, x, b), self.b)
         snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
         snes.setObjective(lambda s, x: self._objective(s, x))
-        snes.setConvergenceTest(self._converged)
+        snes.setConvergenceTest(lambda s, it, norms: self.stop(s, it, norms))
         snes.setTolerances(max_it=max_it)
         snes.setFromOptions()
         snes.setLineSearchPreCheck(self._critical_step if snes.getType() == "qn"
-                                   else self._precheck)
+                                   else lambda x, y, *a: self.stop.precheck(x, y))
         if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
             snes.setKSP(ksp)
         for k in mine:
@@ -256,13 +270,16 @@ class Factorisation:
         return self._fresh_qn_snes(self.max_it)
 
     def _fresh_qn_snes(self, max_it: int):
-        """A new quasi-Newton SNES on the shared KSP (the previous one destroyed), its
-        options under ``<prefix>qn_`` (`QN_PREFIX`), the API's ``options`` with them."""
-        self._drop_qn_snes()
-        self._relaxing = False   # set by relax() on its own
-        self._qn_snes = self._build_snes({**self._search, **METHODS["qn"], **self._options},
-                                         max_it, self.ksp, self._prefix + QN_PREFIX)
+        """A new quasi-Newton SNES for a solve (the previous one destroyed): `_new_qn_snes`."""
+        self._drop_snes(self._qn_snes)
+        self._qn_snes = self._new_qn_snes(max_it)
         return self._qn_snes
+
+    def _new_qn_snes(self, max_it: int):
+        """A new quasi-Newton SNES on the shared KSP, its options under ``<prefix>qn_``
+        (`QN_PREFIX`), the API's ``options`` with them."""
+        return self._build_snes({**self._search, **METHODS["qn"], **self._options}, max_it,
+                                self.ksp, self._prefix + QN_PREFIX)
 
     def _make_tangent_ksp(self, prefix: str):
         """CG on K at the equilibrium, preconditioned by the kept factorisation (or GAMG
@@ -280,13 +297,13 @@ class Factorisation:
         ksp.setFromOptions()
         return ksp
 
-    def _drop_qn_snes(self):
-        """Destroy the last quasi-Newton SNES; first hand it a KSP of its own: destroying a
-        SNES resets its KSP, which would throw away the shared factorisation."""
-        if self._qn_snes is not None:
-            self._qn_snes.setKSP(PETSc.KSP().create(self.domain.comm))
-            self._qn_snes.destroy()
-            self._qn_snes = None
+    def _drop_snes(self, snes):
+        """Destroy a quasi-Newton SNES (None: nothing); first hand it a KSP of its own:
+        destroying a SNES resets its KSP, which would throw away the shared factorisation.
+        The caller forgets it."""
+        if snes is not None:
+            snes.setKSP(PETSc.KSP().create(self.domain.comm))
+            snes.destroy()
 
     def _jacobian(self, snes, x, A, P):
         """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
@@ -344,7 +361,7 @@ class Factorisation:
         """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a
         diagonal shift only where K is not positive definite there); K is assembled once.
         The tangent solves do so when they need to; callers force it (tests, timing)."""
-        self.kept.refactor = True
+        self.kept.request_refactor()
         self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
         self.ksp.setOperators(self.A)
         self.ksp.getPC().setUp()

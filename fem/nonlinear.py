@@ -1,6 +1,6 @@
 """The nonlinear strategies: quasi-Newton on the kept factorisation with its critical-point
-line search and stopping test, stall refreshes, bisection of the step in p, Newton taking
-over; `SolveStats` of each solve.
+line search (the stopping test: `fem.stopping`), stall refreshes, bisection of the step in p,
+Newton taking over; `SolveStats` of each solve.
 """
 
 from __future__ import annotations
@@ -50,11 +50,6 @@ class NonlinearSolves:
     """One equilibrium solve and its fallbacks (mixin of
     `fem.equilibrium.Equilibrium`)."""
 
-    def _precheck(self, x, y, *args):
-        """Remember the search direction's size (inf-norm, mm) for the convergence test."""
-        self._direction = y.norm(PETSc.NormType.INFINITY)
-        return False
-
     def _critical_step(self, x, y, *args):
         """Quasi-Newton's line search, run as the pre-check of SNES's "basic" one, which then
         takes the step x - y: y is scaled to the critical point of the energy along it, by
@@ -64,7 +59,7 @@ class NonlinearSolves:
         iterations 24 -> 16 against a backtracking search (BENCHMARKS.md). One residual
         per iteration besides SNES's own; a step that still inverts an element fails the
         solve (a NaN residual), which falls back as any failure does."""
-        self._precheck(x, y)
+        self.stop.precheck(x, y)
         s0 = self.b.dot(y)   # the SNES function vector holds F(x)
         t = 1.0
         for _ in range(self.policy.max_halvings):
@@ -94,55 +89,6 @@ class NonlinearSolves:
         ok = np.isfinite(val) and (self.domain.degree == 1 or self.min_det_F() > 0)
         return val if ok else None
 
-    def _converged(self, snes, it, norms):
-        xnorm, ynorm, fnorm = norms
-        self._stats.residual_history.append(fnorm)
-        if it == 0:
-            self._fnorms = []
-        self._fnorms.append(fnorm)
-        if not np.isfinite(fnorm):
-            return PETSc.SNES.ConvergedReason.DIVERGED_FNORM_NAN
-        if fnorm <= self.atol:
-            return PETSc.SNES.ConvergedReason.CONVERGED_FNORM_ABS
-        if it == 0:
-            self._f0 = fnorm if self._f_ref is None else self._f_ref
-            snes.getSolution().copy(self._x_prev)
-            return 0
-        x = snes.getSolution()
-        self._x_prev.axpy(-1.0, x)
-        step = self._x_prev.norm(PETSc.NormType.INFINITY)
-        x.copy(self._x_prev)
-        if snes.getType() == "qn":   # a short step AND a short search direction, both
-            # scaled to the error they leave at quasi-Newton's observed linear rate
-            step, full = max(step, self._direction) * self._error_per_step(it), True
-        else:   # a small step proves convergence only if it was a full Newton step (no shift)
-            full = self.kept.step_shift == 0
-        if step <= self.xtol and fnorm <= self.frtol * self._f0 and full:
-            return PETSc.SNES.ConvergedReason.CONVERGED_SNORM_RELATIVE
-        if snes.getType() == "qn" and self._tangent_refresh and \
-                it > self.policy.tangent_lag_its and \
-                step <= self.policy.tangent_refresh_xtols * self.xtol:
-            self._tangent_refresh, self._refresh = False, "tangent"
-            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
-        if snes.getType() == "qn" and it >= self.policy.stall_its and \
-                fnorm > self.policy.stall_ratio * self._fnorms[it - self.policy.stall_its]:
-            self._refresh = "stalled"
-            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
-        if it >= snes.getTolerances()[3]:
-            return PETSc.SNES.ConvergedReason.DIVERGED_MAX_IT
-        return 0
-
-    def _error_per_step(self, it: int) -> float:
-        """max(1, ρ/(1-ρ)): at a linear rate ρ (the residual's over the last two iterations,
-        the first, load-solving one left out, capped at `SolverPolicy.rate_max`) the error
-        left after a
-        step of length s is about s ρ/(1-ρ). Slow rates (a factorisation far from here)
-        thus stop later; healthy ones (ρ ≤ 1/2) as the step alone says."""
-        if it < 3:
-            return 1.0
-        rate = min(np.sqrt(self._fnorms[it] / self._fnorms[it - 2]), self.policy.rate_max)
-        return max(1.0, rate / (1.0 - rate))
-
     def solve(self, p, max_bisections: int = 6, predict: bool = True,
               quick: bool = False, tangent: bool = False,
               start: PETSc.Vec | None = None) -> SolveStats:
@@ -171,7 +117,6 @@ class NonlinearSolves:
         self.set_params(p)  # validates
         max_bisections = check("max_bisections", max_bisections)
         self._stats = SolveStats()
-        self._relaxing = False   # relax() pairs do not outlive a solve
         quick = quick and self.method != "newton"
         if quick:
             max_bisections = 0
@@ -201,10 +146,10 @@ class NonlinearSolves:
         depth = 0
         while todo:
             p_next = todo[-1]
-            self._tangent_refresh = tangent and len(todo) == 1   # at p itself only
             try:
                 self._newton(p_next, p_done, quick,
-                             qn_only=quick or depth < self.policy.qn_bisections)
+                             qn_only=quick or depth < self.policy.qn_bisections,
+                             tangent=tangent and len(todo) == 1)   # at p itself only
             except SolverError:
                 self._set_state(u_good)
                 depth += 1
@@ -232,6 +177,8 @@ class NonlinearSolves:
         self.set_params(p)
         self.p = p.copy()
         self._uvec.copy(self.u_eq)
+        self._drop_snes(self._relax_snes)   # relax() pairs (a path's) do not outlive a solve
+        self._relax_snes = None
         if moved:
             self.solved_xtol = self.xtol
             self._invalidate()
@@ -257,7 +204,8 @@ class NonlinearSolves:
         self._stats = SolveStats()   # later tangent work must not change what was returned
         return st
 
-    def _newton(self, p, p_from, quick: bool = False, qn_only: bool = False):
+    def _newton(self, p, p_from, quick: bool = False, qn_only: bool = False,
+                tangent: bool = False):
         """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
         quasi-Newton fails and ``qn_only``, `SolverError` (the caller bisects the step);
         else Newton goes on from its iterate where that is sound (finite, nothing inverted,
@@ -266,14 +214,16 @@ class NonlinearSolves:
         load of the step, |df/dp (p - p_from)|, not to the (maybe predicted) start, and at
         least `fem.limits.FRTOL_FLOOR` of the goals' whole load |df/dg g(p)| (a tiny step
         cannot ask for a residual below roundoff); with no load (a refinement) only the step
-        counts."""
+        counts. ``tangent``: arm the stopping test's tangent refresh (`solve`)."""
         self.set_params(p)
-        self.kept.shift = 0.0
+        self.kept.set_shift(0.0)
         load = self._load(p - p_from)
         total = load.duplicate()   # |df/dg g(p)|: a scale (sliding: df/dg of the last p0)
         self.dfdg.mult(compat.petsc_vec(self.goal), total)
         # no load: refining the current equilibrium to a tighter xtol, where only steps count
-        self._f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
+        f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
+        self.stop.start(self.xtol, self.frtol, self.atol, self._stats.residual_history, f_ref,
+                        tangent)
         load.destroy()
         total.destroy()
         self._uvec.copy(self._x)
@@ -282,7 +232,7 @@ class NonlinearSolves:
             self._iterate(p, start, quick, qn_only)
         finally:
             start.destroy()
-            self.kept.shift, self._tangent_refresh = 0.0, False
+            self.kept.set_shift(0.0)
 
     def _iterate(self, p, start, quick: bool, qn_only: bool):
         """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
@@ -292,8 +242,7 @@ class NonlinearSolves:
         shift = 0.0   # the Jacobian callback lets kept.shift decay; this one only grows
         refreshes, f_start = 0, None   # f_start: the residual norm at the start
         while True:
-            self._refresh = None
-            snes.solve(None, self._x)
+            self.stop.run(snes, self._x)
             reason = snes.getConvergedReason()
             self._last_its = snes.getIterationNumber()
             self._stats.iterations += self._last_its
@@ -309,12 +258,12 @@ class NonlinearSolves:
                     raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
-            self.kept.refactor = True
-            why = self._refresh
-            f_start = self._fnorms[0] if f_start is None else f_start
+            self.kept.request_refactor()
+            why = self.stop.refresh
+            f_start = self.stop.norms[0] if f_start is None else f_start
             if quick:
                 refresh = refreshes < self.policy.quick_refreshes and \
-                    self._fnorms[-1] <= self.policy.quick_refresh_progress * f_start
+                    self.stop.norms[-1] <= self.policy.quick_refresh_progress * f_start
             else:
                 refresh = refreshes < self.policy.qn_refreshes
             if snes is not self._newton_snes and (why == "tangent" or why == "stalled" and
@@ -337,7 +286,8 @@ class NonlinearSolves:
                 continue
             if shift >= self.shift_retry * self.kept.diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
-            shift = self.kept.shift = max(100 * shift, 1e-2 * self.kept.diag_scale)
+            shift = max(100 * shift, 1e-2 * self.kept.diag_scale)
+            self.kept.set_shift(shift)
             self._stats.shifts.append(shift)
             log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
                      self._last_its, shift)

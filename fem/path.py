@@ -75,7 +75,7 @@ class PathFollowing:
             x = self.admissible(self.u_eq, step)
             if x is None and follow:
                 x = self.follow(self.p, self.u_eq, step, p)
-                self.kept.refactor = x is not None
+                self.kept.request_refactor(x is not None)
             return x
         finally:
             step.destroy()
@@ -175,19 +175,19 @@ class PathFollowing:
         t0 = time.perf_counter()
         if not self.kept.ready:   # no factorisation yet: one at the equilibrium
             self.factorise_at_equilibrium()
-        self._f_ref = None   # residual tolerance relative to the start's residual
-        if resume and self._relaxing:
-            snes = self._qn_snes
-            snes.setTolerances(max_it=iterations)
-        else:
-            snes = self._fresh_qn_snes(iterations)
-            snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factorisation
-            self._relaxing = True
+        # residual tolerance relative to the start's residual
+        self.stop.start(self.xtol, self.frtol, self.atol, self._stats.residual_history)
+        if not resume or self._relax_snes is None:
+            self._drop_snes(self._relax_snes)
+            self._relax_snes = self._new_qn_snes(iterations)
+            self._relax_snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factor
+        snes = self._relax_snes
+        snes.setTolerances(max_it=iterations)
         x0 = x.copy()
         try:
-            snes.solve(None, x)
+            self.stop.run(snes, x)
             self._stats.iterations = snes.getIterationNumber()
-            if not self._sound(x) or self._fnorms[-1] > self._fnorms[0]:
+            if not self._sound(x) or self.stop.norms[-1] > self.stop.norms[0]:
                 x0.copy(x)   # steps that end unsound or with a larger residual: keep x
         finally:
             x0.destroy()

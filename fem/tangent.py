@@ -44,7 +44,7 @@ class TangentSolves:
                 if attempt:
                     ksp.setType("cg")
                 if not own and ksp.getIterationNumber() > self.policy.tangent_lag_its:
-                    self.kept.state = FactorState.STALE
+                    self.kept.slowed()
                 return ksp.getIterationNumber()
         raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
                           f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "

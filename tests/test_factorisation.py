@@ -80,7 +80,7 @@ def test_a_shifted_factorisation_is_not_used_as_the_equilibriums(monkeypatch):
     scene.solve([0.5, -0.8])
     exact = [s.array.copy() for s in eq.sensitivity()]
     eq.forget_sensitivities()
-    eq.kept.state = FactorState.ITERATE            # as if the equilibrium had moved
+    eq.kept.moved()                                # as if the equilibrium had moved
     pivots = iter([1])                             # one negative pivot, then the real ones
     real_inertia, real_solve = eq.kept.inertia, eq.solve_tangent
     monkeypatch.setattr(eq.kept, "inertia",
