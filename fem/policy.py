@@ -61,7 +61,8 @@ class SolverPolicy:
             10); then K is refactorised at the current iterate and L-BFGS restarts there,
         qn_refreshes: ... up to this many times, before Newton takes over;
         quick_refreshes: ... and this many in a quick solve (a plan's line-search trial,
-            which can be shortened instead),
+            which can be shortened instead; 2: Cranium's sliding-tissue plan solved a half
+            step after its second refresh, 4 forward solves instead of 5, docs/decisions.md),
         quick_refresh_progress: ... and only where the residual has fallen below this
             fraction of the quick solve's start: a stall with no progress means the trial is
             far from any state the kept K describes, and a shorter trial is cheaper than
@@ -105,7 +106,7 @@ class SolverPolicy:
     stall_its: int = 5
     stall_ratio: float = 0.5
     qn_refreshes: int = 3
-    quick_refreshes: int = 1
+    quick_refreshes: int = 2
     quick_refresh_progress: float = 0.1
     rate_max: float = 0.9
     max_halvings: int = 20
