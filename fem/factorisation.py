@@ -220,7 +220,7 @@ class Factorisation:
         self._newton_snes = self._build_snes(settings, METHOD_DEFAULTS["newton"]["max_it"]
                                              if self.method != "newton" else self.max_it)
         self._qn_snes = None      # the last solve's quasi-Newton SNES
-        self._relax_snes = None   # relax()'s, its L-BFGS pairs kept for a path's next substep
+        self._relax_snes = None   # relax()'s, its L-BFGS pairs kept until a solve iterates
         ksp = self._newton_snes.getKSP()
         ksp.setOperators(self.A)
         self.solver_name = solver

@@ -177,8 +177,6 @@ class NonlinearSolves:
         self.set_params(p)
         self.p = p.copy()
         self._uvec.copy(self.u_eq)
-        self._drop_snes(self._relax_snes)   # relax() pairs (a path's) do not outlive a solve
-        self._relax_snes = None
         if moved:
             self.solved_xtol = self.xtol
             self._invalidate()
@@ -238,6 +236,8 @@ class NonlinearSolves:
         """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
         `SolverError` when Newton fails even with the largest retry shift, or when
         quasi-Newton fails and ``qn_only``. ``quick``: one stall refresh only."""
+        self._drop_snes(self._relax_snes)   # a path's relax() pairs do not outlive its solve
+        self._relax_snes = None
         snes = self._method_snes()
         shift = 0.0   # the Jacobian callback lets kept.shift decay; this one only grows
         refreshes, f_start = 0, None   # f_start: the residual norm at the start
