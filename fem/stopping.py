@@ -39,6 +39,7 @@ class StoppingTest:
         self.refresh = None                  # why it stopped to refactorise, or None
         self.xtol = self.frtol = self.atol = 0.0
         self.f_ref, self.tangent, self.history = None, False, []
+        self.f0 = np.inf                     # this solve's residual reference (mN)
 
     def start(self, xtol: float, frtol: float, atol: float, history: list,
               f_ref: float | None = None, tangent: bool = False):
