@@ -271,16 +271,24 @@ def _gauss_newton(scene, objective, p0, bounds, opts: PlanOptions, callback):
                       timings)
 
 
+#: The head frame's axes (`meshes.frame`), as a plan report names them.
+HEAD_AXES = ("left", "anterior", "superior")
+
+
 def plan_report(scene, result: PlanResult, targets: dict, before: dict) -> dict:
-    """The JSON report of a plan (keys in README.md): the landmark table (``targets`` and
-    ``before`` {name: (3,)} mm), parameters, history, timings and the bone motions."""
+    """The JSON report of a plan (docs/planning.md): the landmark table (``targets`` and
+    ``before`` {name: (3,)} mm; ``offset_after_mm``: where each landmark ends from its
+    target along the head frame's axes), parameters, history, timings and the bone
+    motions."""
     after = scene.landmarks(list(targets))
+    axes = scene.head_frame.rotation   # columns: left, anterior, superior (scene frame)
     table = {}
     for n, t in targets.items():
         t = np.asarray(t, dtype=float)
         table[n] = {"target": t, "before": before[n], "after": after[n],
                     "distance_before_mm": float(np.linalg.norm(before[n] - t)),
-                    "distance_after_mm": float(np.linalg.norm(after[n] - t))}
+                    "distance_after_mm": float(np.linalg.norm(after[n] - t)),
+                    "offset_after_mm": dict(zip(HEAD_AXES, ((after[n] - t) @ axes).tolist()))}
     mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
     return {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,

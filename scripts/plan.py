@@ -163,9 +163,12 @@ def print_plan(report) -> None:
     print(f"\n{report['case']}: {report['n_vertices']} vertices, {report['n_ranks']} rank(s); "
           f"{report['gn_iterations']} Gauss-Newton iterations, {report['forward_solves']} "
           f"forward solves, converged: {report['converged']} ({report['stop_reason']})")
-    print(f"\n{'landmark':9s} {'before mm':>10s} {'after mm':>10s}")
+    print(f"\n{'landmark':9s} {'before mm':>10s} {'after mm':>10s}   after - target, mm: "
+          f"{'left':>6s} {'anterior':>8s} {'superior':>8s}")
     for n, v in report["landmarks"].items():
-        print(f"{n:9s} {v['distance_before_mm']:10.2f} {v['distance_after_mm']:10.2f}")
+        off = v["offset_after_mm"]
+        print(f"{n:9s} {v['distance_before_mm']:10.2f} {v['distance_after_mm']:10.2f}"
+              f"{'':22s}{off['left']:6.2f} {off['anterior']:8.2f} {off['superior']:8.2f}")
     print(f"{'mean':9s} {report['mean_distance_before_mm']:10.2f} "
           f"{report['mean_distance_after_mm']:10.2f}\n\nparameters found:")
     for n, v in zip(report["param_names"], report["params_optimal"]):

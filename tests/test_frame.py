@@ -337,8 +337,9 @@ def test_tilted_scene_simulates_the_same_advance(tilted_scenes, tmp_path):
 def test_tilted_scene_plans_the_same_treatment(tilted_scenes, tmp_path):
     """plan.py to the same clinical goal (Pg and Li 4 mm forward, Ls 2 mm, in the face's
     frame), targets written in each scene's frame: the same parameters within 0.05 mm and
-    0.05 degrees."""
-    params = {}
+    0.05 degrees, and each landmark's miss along the face's axes (``offset_after_mm``) the
+    same within 0.05 mm."""
+    params, offsets = {}, {}
     for angles, (mesh, M) in tilted_scenes.items():
         rest = tmp_path / "rest.json"
         r = _run(SIMULATE + ["--mesh", str(mesh), "--params-used", "mandible.advance_mm",
@@ -356,10 +357,14 @@ def test_tilted_scene_plans_the_same_treatment(tilted_scenes, tmp_path):
         assert r.returncode == 0, r.stderr[-2000:]
         plan = json.loads(rep.read_text())
         params[angles] = dict(zip(plan["param_names"], plan["params_optimal"]))
-    base = params.pop(None)
+        offsets[angles] = {k: list(v["offset_after_mm"].values())
+                           for k, v in plan["landmarks"].items()}
+    base, base_off = params.pop(None), offsets.pop(None)
     for angles, p in params.items():
         for k, v in p.items():
             assert abs(v - base[k]) < 0.05, (angles, k, v, base[k])
+        for k, off in offsets[angles].items():
+            assert np.abs(np.subtract(off, base_off[k])).max() < 0.05, (angles, k, off)
 
 
 @needs_cranium

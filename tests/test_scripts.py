@@ -152,7 +152,11 @@ def test_plan_default_goal_report(tmp_path):
                                      "total"}
     assert len(rep["landmarks"]) == 7 and len(rep["history"]) == rep["gn_iterations"] + 1
     assert set(rep["landmarks"]["Pg"]) == {"target", "before", "after", "distance_before_mm",
-                                           "distance_after_mm"}
+                                           "distance_after_mm", "offset_after_mm"}
+    for v in rep["landmarks"].values():   # class3-asym's frame is the identity
+        off = v["offset_after_mm"]
+        np.testing.assert_allclose([off["left"], off["anterior"], off["superior"]],
+                                   np.subtract(v["after"], v["target"]), atol=1e-12)
     assert rep["mean_distance_after_mm"] < 0.5 * rep["mean_distance_before_mm"]
 
 
