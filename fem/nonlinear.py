@@ -235,7 +235,8 @@ class NonlinearSolves:
     def _iterate(self, p, start, quick: bool, qn_only: bool):
         """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
         `SolverError` when Newton fails even with the largest retry shift, or when
-        quasi-Newton fails and ``qn_only``. ``quick``: one stall refresh only."""
+        quasi-Newton fails and ``qn_only``. ``quick``: at most
+        `SolverPolicy.quick_refreshes` stall refreshes."""
         self._drop_snes(self._relax_snes)   # a path's relax() pairs do not outlive its solve
         self._relax_snes = None
         snes = self._method_snes()
