@@ -28,13 +28,13 @@ shift is added and raised; when that fails too, the step in p is bisected (conti
 `Equilibrium` keeps K and its factorisation/preconditioner (``self.ksp``) for adjoint and
 sensitivity solves.
 
-The engine's rooms, one job each (mixins of `Equilibrium`, which owns the state):
-`fem.forms` (the energy and its forms), `fem.factorisation` (the kept factorisation),
-`fem.nonlinear` (the nonlinear strategies, `SolveStats`), `fem.path` (path following and
-predictions), `fem.tangent` (tangent and sensitivity solves); and two parts that own their
-state: `fem.factorisation.KeptFactor` (what the kept factorisation holds) and
-`fem.stopping.StoppingTest` (every SNES solve's stopping test). Their tuned settings are one
-`fem.policy.SolverPolicy`.
+The engine's parts, which own their state: `fem.forms.EnergyForms` (the energy, its forms and
+the fields they are evaluated at, ``Equilibrium.forms``), `fem.factorisation.KeptFactor`
+(what the kept factorisation holds, ``.kept``) and `fem.stopping.StoppingTest` (every SNES
+solve's stopping test, ``.stop``); and its rooms, mixins of `Equilibrium`, one job each:
+`fem.factorisation` (when K is assembled and refactorised), `fem.nonlinear` (the nonlinear
+strategies, `SolveStats`), `fem.path` (path following and predictions), `fem.tangent`
+(tangent and sensitivity solves). Their tuned settings are one `fem.policy.SolverPolicy`.
 """
 
 from __future__ import annotations
@@ -45,16 +45,13 @@ from petsc4py import PETSc
 import contextlib
 import time
 
-import dolfinx
 import numpy as np
-import ufl
 
-from fem import compat
 from fem.domain import Domain
 from fem.factorisation import Factorisation
-from fem.forms import DEFAULT_PENALTY, Forms
+from fem.forms import DEFAULT_PENALTY, EnergyForms
 from fem.limits import check
-from fem.material import HOMOGENEOUS, NeoHookean, Tissues, neo_hookean
+from fem.material import HOMOGENEOUS, NeoHookean, Tissues
 from fem.nonlinear import NonlinearSolves, SolveStats
 from fem.path import PathFollowing
 from fem.policy import EquilibriumOptions
@@ -95,7 +92,7 @@ class LinearGoals:
         return None
 
 
-class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
+class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
     """Owns forms, PETSc objects and the current equilibrium of one scene.
 
     Args:
@@ -154,99 +151,27 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         self.method, self.xtol, self.max_it, self.lag_its = (opts.method, opts.xtol, opts.max_it,
                                                              opts.lag_its)
         self.frtol, self.atol = opts.frtol, opts.atol
-        V = domain.V
-        self.u = dolfinx.fem.Function(V, name="displacement")
-        self._uvec = compat.petsc_vec(self.u)
-        self._x = self._uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
-        self.goal = dolfinx.fem.Function(V, name="goal")
         self.goals = goals if hasattr(goals, "goal") else LinearGoals(goals)
-        n_local = self.u.x.array.size
         self.n_params = self.goals.n_params
-        g0 = np.asarray(self.goals.goal(np.zeros(self.n_params)))
-        if g0.shape != (n_local,):
-            raise InputError(f"goals must be ({n_local},) per p, got {g0.shape}")
-        active_tags, sliding_tags = tuple(active_tags), tuple(sliding_tags)
-        if not active_tags and not sliding_tags:
-            raise InputError("no facets are held to a goal: give active or sliding tags")
-        # owned vertices held to their goals (checked after every solve)
-        self._active = np.zeros(domain.n_owned, dtype=bool)
-        if active_tags:
-            blocks = domain.facet_blocks(active_tags)
-            self._active[blocks[blocks < domain.n_owned]] = True
-        v, du = ufl.TestFunction(V), ufl.TrialFunction(V)
-        F = ufl.Identity(3) + ufl.grad(self.u)
-        ds = domain.ds()
-        md = {"quadrature_degree": opts.quadrature_degree}
-        gap = self.u - self.goal
-        # material and penalty are constants (or cell fields), not numbers: the forms
-        # compile once for all values
-        k = dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(penalty))
-        mu, lmbda = self._lame(material)
-        qd = 2 * (domain.degree - 1) if opts.volume_quadrature_degree is None else \
-            opts.volume_quadrature_degree
-        dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
-        contact = 0
-        if active_tags:
-            contact = 0.5 * k * ufl.inner(gap, gap) * ds(active_tags, metadata=md)
-        self.turn = None   # R(p) on the sliding facets' cells
-        self._sliding_tags = sliding_tags
-        if sliding_tags:
-            self._setup_turns(sliding_tags)
-            n = ufl.dot(self.turn, ufl.FacetNormal(domain.mesh))
-            contact = contact + 0.5 * k * ufl.inner(gap, n) ** 2 * ds(sliding_tags, metadata=md)
-        energy = neo_hookean(F, mu, lmbda) * dx + contact
-        residual = ufl.derivative(energy, self.u, v)
-        jacobian = ufl.derivative(residual, self.u, du)
-        coupling = ufl.derivative(residual, self.goal, du)  # df/dg, constant when glued
-        self.ufl_forms = dict(energy=energy, residual=residual, jacobian=jacobian,
-                              coupling=coupling,   # also for peers (``bench.py peers``)
-                              contact=ufl.derivative(contact, self.u, v))
-        if self.turn is not None:   # df/dR, for df/dp = df/dg dg/dp + df/dR dR/dp
-            self.ufl_forms["turn_coupling"] = ufl.derivative(
-                residual, self.turn, ufl.TrialFunction(self.turn.function_space))
-            # per cell: the sliding facets' ∫ ((u - g)·n)² ds and their area (the gap check)
-            w = ufl.TestFunction(compat.scalar_space(domain.mesh))
-            sliding_ds = ds(sliding_tags, metadata=md)
-            self.ufl_forms["normal_gap"] = ufl.inner(gap, n) ** 2 * w * sliding_ds
-            self.ufl_forms["sliding_area"] = w * sliding_ds
-        self.forms = {k: compat.form(f) for k, f in self.ufl_forms.items()}
-        self.bcs = domain.dirichlet_bcs()
-        self.A = compat.create_matrix(self.forms["jacobian"])
-        self.A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        self.A.setOption(PETSc.Mat.Option.SYMMETRY_ETERNAL, True)
-        self.b = compat.create_vector(self.forms["residual"])
-        self._set_near_nullspace()
-        self.dfdg = compat.create_matrix(self.forms["coupling"])
-        self.dfdR = None if self.turn is None else \
-            compat.create_matrix(self.forms["turn_coupling"])
-        if self.turn is not None:
-            self._sliding_area = self._cell_sums("sliding_area")
-        self.set_params(np.zeros(self.n_params))
-        self._assemble_couplings()
-        self._dfdp = [self.dfdg.createVecLeft() for _ in range(self.n_params)]
-        self._dfdp_at = None   # the p of self._dfdp
+        self.forms = EnergyForms(domain, self.goals, active_tags, sliding_tags, material,
+                                 penalty, opts.quadrature_degree, opts.volume_quadrature_degree)
+        self._x = self.forms.uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
         self.shift_retry = opts.shift_retry
         self._stats = SolveStats()
         self.ksp, self.kept = self._make_snes(opts.prefix, opts.solver, opts.options)
-        self.stop = StoppingTest(self._uvec, self.policy, self.kept)
-        self._obj_x = self._uvec.duplicate()  # the point of the last energy evaluation
-        self._obj_val = None                 # its energy (None: not valid)
-        self._w, self._r = self._uvec.duplicate(), self.b.duplicate()   # line-search trial
+        self.stop = StoppingTest(self.forms.uvec, self.policy, self.kept)
+        self._w, self._r = self._x.duplicate(), self.forms.b.duplicate()   # line-search trial
         self._last_its = 0                   # iterations of the last SNES solve
         self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
         # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
         # (else, e.g. a mandible held in an occlusion, rest is no equilibrium: inf)
-        moved = np.abs(g0).max(initial=0.0)
+        moved = np.abs(self.forms.goal.x.array).max(initial=0.0)
         self.solved_xtol = 0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf
-        self.u_eq = self._uvec.copy()       # its displacement; warm start of the next solve
+        self.u_eq = self.forms.uvec.copy()   # its displacement; warm start of the next solve
         self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
         self._K_ready = False
         self._sens = None                    # cached dx/dp columns at the equilibrium
         self.tangent_ksp = self._make_tangent_ksp(opts.prefix)
-        # det F at the vertices of each cell (constant on P1 cells, so its centroid)
-        pts = np.array([[0.25] * 3] if domain.degree == 1 else
-                       [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.25] * 3], dtype=float)
-        self._det_F = compat.eval_expression(ufl.det(F), pts, domain.mesh)
         self.setup_time = time.perf_counter() - t0
 
     def set_xtol(self, xtol: float) -> None:
@@ -262,46 +187,91 @@ class Equilibrium(Forms, Factorisation, NonlinearSolves, PathFollowing, TangentS
         finally:
             self.xtol = xtol
 
-    def _lame(self, material):
-        """UFL (mu, lmbda), kPa: constants for one material, DG0 fields for `Tissues`."""
-        mesh = self.domain.mesh
-        if isinstance(material, NeoHookean):
-            return (dolfinx.fem.Constant(mesh, PETSc.ScalarType(v))
-                    for v in (material.mu, material.lmbda))
-        if self.domain.tissues is None:
-            raise InputError(f"anatomy {self.domain.name!r} has no tissue classes: use the "
-                             "homogeneous material")
-        out = []
-        space = compat.scalar_space(mesh)
-        dofs = space.dofmap.list.array   # one dof per local cell, in cell order
-        for name, values in zip(("mu", "lambda"), material.lame(self.domain.tissues)):
-            f = dolfinx.fem.Function(space, name=name)
-            f.x.array[dofs] = values
-            out.append(f)
-        return out
+    # the forms' fields and evaluations (`fem.forms.EnergyForms`), as the API gives them
 
-    def _setup_turns(self, tags):
-        """The DG0 rotation field of the sliding facets' cells, and the dof blocks of each
-        tag's cells."""
-        domain = self.domain
-        tdim = domain.mesh.topology.dim
-        self.turn = dolfinx.fem.Function(compat.tensor_space(domain.mesh), name="turn")
-        f2c = domain.mesh.topology.connectivity(tdim - 1, tdim)
-        cell_block = self.turn.function_space.dofmap.list.array
-        self._turn_blocks = []
-        for tag in tags:
-            facets = domain.facet_tags.indices[domain.facet_tags.values == tag]
-            cells = np.array([f2c.links(f)[0] for f in facets], dtype=np.int64)
-            self._turn_blocks.append(cell_block[cells])
-        self._R = np.tile(np.eye(3), (len(tags), 1, 1))
+    @property
+    def u(self):
+        """The displacement (dolfinx Function, mm) the forms are at: the equilibrium after a
+        solve."""
+        return self.forms.u
+
+    @property
+    def goal(self):
+        """The goal field g(p) of the parameters last set (dolfinx Function, mm)."""
+        return self.forms.goal
+
+    @property
+    def turn(self):
+        """The sliding facets' rotations R(p) (DG0 dolfinx Function; None: nothing slides)."""
+        return self.forms.turn
+
+    @property
+    def A(self) -> PETSc.Mat:
+        """The SNES's Jacobian matrix (K's layout, with the rigid-body near-nullspace)."""
+        return self.forms.A
+
+    @property
+    def b(self) -> PETSc.Vec:
+        """The SNES's function vector."""
+        return self.forms.b
+
+    @property
+    def bcs(self) -> list:
+        """The Dirichlet conditions (the skull's fixed vertices)."""
+        return self.forms.bcs
+
+    @property
+    def ufl_forms(self) -> dict:
+        """The UFL forms by name (energy, residual, jacobian, coupling, contact, ...)."""
+        return self.forms.ufl
+
+    @property
+    def dfdp(self) -> list:
+        """df/dp at the equilibrium: Np PETSc vectors, mN per unit (`EnergyForms.dfdp`)."""
+        return self.forms.dfdp(self.p, self.u_eq)
+
+    def set_params(self, p) -> np.ndarray:
+        """Validate p (Np,) and set the goal field g(p) (and the sliding facets' turns R(p))."""
+        return self.forms.set_params(p)
+
+    def energy(self, x: PETSc.Vec) -> float:
+        """E_NH + E_A at the state x (displacement, mm), µJ; +inf where x inverts an
+        element. u is left at x. Collective."""
+        return self.forms.energy(x)
+
+    def residual(self, x: PETSc.Vec, out: PETSc.Vec) -> None:
+        """out = f(x) = dE/dx at the state x (mN); Dirichlet rows hold x minus its boundary
+        value. u is left at x. Collective."""
+        self.forms.residual(x, out)
+
+    def jacobian(self, x: PETSc.Vec, out: PETSc.Mat) -> None:
+        """out = K(x) = df/dx at the state x (mN/mm), Dirichlet rows and columns identity.
+        u is left at x. Collective."""
+        self.forms.jacobian(x, out)
+
+    def load(self, dp) -> PETSc.Vec:
+        """df/dp · dp (dp: (Np,)) as a new PETSc vector, mN: the load a step in p puts on
+        the tissue at the current equilibrium. Collective."""
+        return self.forms.load(dp, self.p, self.u_eq)
+
+    def coupling_transpose(self, lam: PETSc.Vec) -> np.ndarray:
+        """(df/dp)ᵀ λ, shape (Np,) (collective). With λ = K⁻¹ ∂T/∂x, dT/dp = -(df/dp)ᵀ λ."""
+        return np.array([g.dot(lam) for g in self.dfdp])
+
+    def min_det_F(self) -> float:
+        """Smallest det F of the current displacement over all cells (collective)."""
+        return self.forms.min_det_F()
+
+    def active_goal_error(self) -> float:
+        """max over active vertices of |u - g|, and over the cells on sliding facets of the
+        root mean square of (u - g)·n on them, mm (collective)."""
+        return self.forms.active_goal_error()
 
     def destroy(self):
         self._invalidate()
         for snes in (self._qn_snes, self._relax_snes):
             self._drop_snes(snes)
-        for obj in [self._newton_snes, self.tangent_ksp, self.A, self.K, self.b,
-                    self._x, self.stop, self._obj_x, self._w, self._r, self.u_eq,
-                    self.dfdg, self.dfdR,
-                    *self._dfdp]:
+        for obj in [self._newton_snes, self.tangent_ksp, self.K, self._x, self.stop,
+                    self._w, self._r, self.u_eq, self.forms]:
             if obj is not None:
                 obj.destroy()

@@ -13,7 +13,6 @@ import enum
 import logging
 import time
 
-import dolfinx
 import numpy as np
 
 from fem.policy import METHOD_DEFAULTS, METHODS, PRESETS
@@ -191,22 +190,6 @@ class Factorisation:
     """The KSP and its factorisation, kept across solves (mixin of
     `fem.equilibrium.Equilibrium`)."""
 
-    def _set_near_nullspace(self):
-        """Rigid-body modes (3 translations, 3 rotations) for GAMG."""
-        X = self.domain.X
-        n_owned = self.domain.n_owned
-        vecs = [self.b.duplicate() for _ in range(6)]
-        x = X[:n_owned]
-        fields = [np.tile(e, (n_owned, 1)) for e in np.eye(3)]
-        fields += [np.stack([-x[:, 1], x[:, 0], 0 * x[:, 0]], 1),
-                   np.stack([0 * x[:, 0], -x[:, 2], x[:, 1]], 1),
-                   np.stack([x[:, 2], 0 * x[:, 0], -x[:, 0]], 1)]
-        for vec, f in zip(vecs, fields):
-            vec.setArray(f.ravel())
-        dolfinx.la.orthonormalize(vecs)
-        ns = PETSc.NullSpace().create(vectors=vecs, comm=self.domain.comm)
-        self.A.setNearNullSpace(ns)
-
     def _make_snes(self, prefix: str, solver: str, options: dict):
         """Newton's SNES, which owns the KSP (factorisation) that every solve shares, and
         the `KeptFactor` that owns that factorisation: (ksp, kept); preset
@@ -240,9 +223,10 @@ class Factorisation:
         for k in mine:
             opts[prefix + k] = settings[k]
         # late-bound callbacks: a test may replace a method on the instance
-        snes.setFunction(lambda s, x, b: self._residual(s, x, b), self.b)
+        forms = self.forms
+        snes.setFunction(lambda s, x, b: forms.residual(x, b), forms.b)
         snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
-        snes.setObjective(lambda s, x: self._objective(s, x))
+        snes.setObjective(lambda s, x: forms.energy(x))
         snes.setConvergenceTest(lambda s, it, norms: self.stop(s, it, norms))
         snes.setTolerances(max_it=max_it)
         snes.setFromOptions()
@@ -315,7 +299,6 @@ class Factorisation:
                 and kept.shift == 0 and kept.step_shift == 0 and self._last_its <= self.lag_its):
             self._stats.lagged += 1
             return
-        t = time.perf_counter()
         # K at the equilibrium: assembled once, copied (MatCopy into a matrix never
         # assembled leaves it flagged unassembled: the first one is assembled)
         at_eq = x is self.u_eq   # K at the equilibrium: its p's normals, not the goals set
@@ -323,18 +306,13 @@ class Factorisation:
             self._assemble_K()
             self.K.copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
-            self._set_state(x)
-            with self._turns_at(self.p if at_eq else None):
-                self._assemble_jacobian(A)
-        self._stats.assemble += time.perf_counter() - t
+            self.forms.jacobian(x, A, turns_at=self.p if at_eq else None)
         kept.factorise(A, self._stats, reuse=(
             self.method == "newton" and self.lag_its > 0 and kept.ready and not kept.refactor
             and kept.shift == 0 and self.ksp.getIterationNumber() <= self.lag_its))
 
     def _invalidate(self):
         self._K_ready = False
-        if self.turn is not None:   # df/dp depends on u where tissue slides
-            self._dfdp_at = None
         self.forget_sensitivities()
 
     def forget_sensitivities(self):
@@ -346,9 +324,7 @@ class Factorisation:
     def _assemble_K(self):
         if self._K_ready:
             return
-        self._set_state(self.u_eq)
-        with self._turns_at(self.p):
-            self._assemble_jacobian(self.K)
+        self.forms.jacobian(self.u_eq, self.K, turns_at=self.p)
         self._K_ready = True
 
     def tangent_matrix(self) -> PETSc.Mat:
@@ -365,7 +341,7 @@ class Factorisation:
         self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
         self.ksp.setOperators(self.A)
         self.ksp.getPC().setUp()
-        self._set_state(self.u_eq)
+        self.forms.set_state(self.u_eq)
         self.kept.at_equilibrium()
 
     @property

@@ -13,7 +13,6 @@ import time
 
 import numpy as np
 
-from fem import compat
 from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
 from meshes.errors import SolverError
 
@@ -70,7 +69,7 @@ class NonlinearSolves:
         lam = t
         if s1 is not None and s0 > 0 and s0 - s1 > 0:
             lam = min(t * s0 / (s0 - s1), 2 * t)
-            if lam > t and not self._sound(self._trial_point(x, y, lam)):
+            if lam > t and not self.forms.sound(self._trial_point(x, y, lam)):
                 lam = t
         y.scale(lam)
         return True
@@ -84,7 +83,7 @@ class NonlinearSolves:
     def _slope(self, x, y, lam: float):
         """F(x - λy)·y (mN·mm), or None where x - λy inverts an element (P1: the residual is
         NaN; P2 is also checked at the vertices). Collective."""
-        self._residual(None, self._trial_point(x, y, lam), self._r)
+        self.forms.residual(self._trial_point(x, y, lam), self._r)
         val = self._r.dot(y)   # the same on every rank (a global dot)
         ok = np.isfinite(val) and (self.domain.degree == 1 or self.min_det_F() > 0)
         return val if ok else None
@@ -121,25 +120,25 @@ class NonlinearSolves:
         if quick:
             max_bisections = 0
         if np.array_equal(p, self.p) and self.xtol >= self.solved_xtol:   # already there
-            self._set_state(self.u_eq)
+            self.forms.set_state(self.u_eq)
             return self._stats
-        t0 = time.perf_counter()
+        clock = (time.perf_counter(), self.forms.assemble_s)
         if start is not None:   # a copy of it where it is sound
             start = start.copy()
-            if not self._sound(start):
+            if not self.forms.sound(start):
                 start.destroy()
                 start = None
-            self._set_state(self.u_eq)
+            self.forms.set_state(self.u_eq)
         if start is None:
             start = self.first_order(p, follow=not quick) if predict else None
         if quick and start is None and predict and self._can_predict(p):
             self.set_params(self.p)   # the scene stays at its equilibrium
-            self._set_state(self.u_eq)
+            self.forms.set_state(self.u_eq)
             raise SolverError(f"the first-order prediction at p = {np.round(p, 4).tolist()} "
                               "inverts an element: no quick solve is tried")
         p_done, p_start = self.p.copy(), self.p.copy()
         u_good = self.u_eq.copy()   # self.u may have been changed by the caller
-        self._set_state(start or u_good)
+        self.forms.set_state(start or u_good)
         if start is not None:
             start.destroy()
         todo = [p]
@@ -151,10 +150,10 @@ class NonlinearSolves:
                              qn_only=quick or depth < self.policy.qn_bisections,
                              tangent=tangent and len(todo) == 1)   # at p itself only
             except SolverError:
-                self._set_state(u_good)
+                self.forms.set_state(u_good)
                 depth += 1
                 if depth > max_bisections:   # keep the largest step reached
-                    self._commit(p_done, t0, moved=not np.array_equal(p_done, p_start))
+                    self._commit(p_done, clock, moved=not np.array_equal(p_done, p_start))
                     u_good.destroy()
                     raise SolverError(
                         f"equilibrium failed at p = {np.round(p_next, 4).tolist()} even after "
@@ -166,17 +165,18 @@ class NonlinearSolves:
                 continue
             todo.pop()
             p_done = p_next
-            self._uvec.copy(u_good)
+            self.forms.uvec.copy(u_good)
         u_good.destroy()
-        return self._commit(p_done, t0)
+        return self._commit(p_done, clock)
 
-    def _commit(self, p, t0, moved: bool = True) -> SolveStats:
-        """Make the current state u the equilibrium at p; finish the stats; report a goal
-        the tissue did not let the bone reach. ``moved=False`` (a failed solve that made no
+    def _commit(self, p, clock, moved: bool = True) -> SolveStats:
+        """Make the current state u the equilibrium at p; finish the stats (``clock``: the
+        solve's start, and the forms' assembly seconds then); report a goal the tissue did
+        not let the bone reach. ``moved=False`` (a failed solve that made no
         step): the equilibrium, its accuracy, K and dx/dp there are kept."""
         self.set_params(p)
         self.p = p.copy()
-        self._uvec.copy(self.u_eq)
+        self.forms.uvec.copy(self.u_eq)
         if moved:
             self.solved_xtol = self.xtol
             self._invalidate()
@@ -197,7 +197,8 @@ class NonlinearSolves:
         if self.domain.comm.rank == 0:
             for w in st.warnings:
                 log.warning(w)
-        st.total = time.perf_counter() - t0
+        st.total = time.perf_counter() - clock[0]
+        st.assemble = self.forms.assemble_s - clock[1]
         st.linear_solve = max(st.total - st.assemble, 0.0)
         self._stats = SolveStats()   # later tangent work must not change what was returned
         return st
@@ -215,16 +216,15 @@ class NonlinearSolves:
         counts. ``tangent``: arm the stopping test's tangent refresh (`solve`)."""
         self.set_params(p)
         self.kept.set_shift(0.0)
-        load = self._load(p - p_from)
-        total = load.duplicate()   # |df/dg g(p)|: a scale (sliding: df/dg of the last p0)
-        self.dfdg.mult(compat.petsc_vec(self.goal), total)
-        # no load: refining the current equilibrium to a tighter xtol, where only steps count
-        f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * total.norm()) or np.inf
+        load = self.load(p - p_from)
+        # |df/dg g(p)|: a scale (sliding: df/dg of the last p0). No load: refining the
+        # current equilibrium to a tighter xtol, where only steps count
+        f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * self.forms.goal_load_norm()) \
+            or np.inf
         self.stop.start(self.xtol, self.frtol, self.atol, self._stats.residual_history, f_ref,
                         tangent)
         load.destroy()
-        total.destroy()
-        self._uvec.copy(self._x)
+        self.forms.uvec.copy(self._x)
         start = self._x.copy()
         try:
             self._iterate(p, start, quick, qn_only)
@@ -248,9 +248,9 @@ class NonlinearSolves:
             self._last_its = snes.getIterationNumber()
             self._stats.iterations += self._last_its
             self._stats.linear_iterations += snes.getLinearSolveIterations()
-            self._set_state(self._x)
+            self.forms.set_state(self._x)
             crushed = False
-            if reason > 0 and self._finite(self._x):
+            if reason > 0 and self.forms.finite(self._x):
                 gap = self.active_goal_error()
                 if gap <= self.policy.goal_failure_mm:
                     return
@@ -276,7 +276,7 @@ class NonlinearSolves:
             if snes is not self._newton_snes and qn_only:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
             if snes is not self._newton_snes:   # Newton from quasi-Newton's iterate if sound
-                sound = not crushed and self._sound(self._x)
+                sound = not crushed and self.forms.sound(self._x)
                 log.info("%s: SNES reason %d after %d iterations%s: Newton takes over from %s",
                          snes.getType(), reason, self._last_its,
                          " (tissue crushed)" if crushed else "",
@@ -308,6 +308,6 @@ class NonlinearSolves:
         self.set_params(p)
         self.p = p.copy()
         u.copy(self.u_eq)
-        self._set_state(self.u_eq)
+        self.forms.set_state(self.u_eq)
         self._invalidate()
         self.kept.moved()

@@ -27,14 +27,14 @@ class PathFollowing:
         tangent solve; with no factorisation yet, one is made at the equilibrium, and a
         Cholesky factor of K there is applied once (no K assembled, no CG); not so with the
         tangent's own preconditioner (`own_tangent_pc`). ``rhs``: the
-        load to respond to instead of -df/dp dp (e.g. `_goal_load`; consumed)."""
+        load to respond to instead of -df/dp dp (e.g. `EnergyForms.goal_load`; consumed)."""
         dp = np.asarray(dp, dtype=float)
         out = self.u_eq.duplicate()
         out.set(0.0)
         if self.has_sensitivity and rhs is None:
             out.maxpy(dp, self._sens)
             return out
-        rhs = self._load(-dp) if rhs is None else rhs
+        rhs = self.load(-dp) if rhs is None else rhs
         own = self.own_tangent_pc
         if not self.kept.ready and not own:
             self.factorise_at_equilibrium()
@@ -67,8 +67,8 @@ class PathFollowing:
             # nonlinear goals: the tissue's response to the exact goals at p (one solve
             # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
             # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
-            step = self.tangent_step(p - self.p, None if self.goals.linear and
-                                     self.turn is None else self._goal_load(p))
+            step = self.tangent_step(p - self.p, None if self.forms.linear else
+                                     self.forms.goal_load(self.p, self.u_eq, p))
         except SolverError:
             return None
         try:
@@ -151,10 +151,10 @@ class PathFollowing:
         state u is left at the equilibrium. Collective."""
         x = x0.copy()
         x.axpy(1.0, step)
-        if not self._sound(x):
+        if not self.forms.sound(x):
             x.destroy()
             x = None
-        self._set_state(self.u_eq)
+        self.forms.set_state(self.u_eq)
         return x
 
     def relax(self, p, x: PETSc.Vec, iterations: int, resume: bool = False) -> SolveStats:
@@ -187,11 +187,11 @@ class PathFollowing:
         try:
             self.stop.run(snes, x)
             self._stats.iterations = snes.getIterationNumber()
-            if not self._sound(x) or self.stop.norms[-1] > self.stop.norms[0]:
+            if not self.forms.sound(x) or self.stop.norms[-1] > self.stop.norms[0]:
                 x0.copy(x)   # steps that end unsound or with a larger residual: keep x
         finally:
             x0.destroy()
             self.set_params(self.p)
-            self._set_state(self.u_eq)
+            self.forms.set_state(self.u_eq)
         self._stats.total = time.perf_counter() - t0
         return self._stats
