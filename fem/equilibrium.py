@@ -30,8 +30,9 @@ sensitivity solves.
 
 The engine's parts, which own their state: `fem.forms.EnergyForms` (the energy, its forms and
 the fields they are evaluated at, ``Equilibrium.forms``), `fem.factorisation.KeptFactor`
-(what the kept factorisation holds, ``.kept``) and `fem.stopping.StoppingTest` (every SNES
-solve's stopping test, ``.stop``); and its rooms, mixins of `Equilibrium`, one job each:
+(what the kept factorisation holds, ``.kept``), `fem.tangent.Linearisation` (K and dx/dp at
+the equilibrium, the tangent KSP, ``.linearisation``) and `fem.stopping.StoppingTest` (every
+SNES solve's stopping test, ``.stop``); and its rooms, mixins of `Equilibrium`, one job each:
 `fem.factorisation` (when K is assembled and refactorised), `fem.nonlinear` (the nonlinear
 strategies, `SolveStats`), `fem.path` (path following and predictions), `fem.tangent`
 (tangent and sensitivity solves). Their tuned settings are one `fem.policy.SolverPolicy`.
@@ -56,7 +57,7 @@ from fem.nonlinear import NonlinearSolves, SolveStats
 from fem.path import PathFollowing
 from fem.policy import EquilibriumOptions
 from fem.stopping import StoppingTest
-from fem.tangent import TangentSolves
+from fem.tangent import Linearisation, TangentSolves
 from meshes.errors import InputError
 
 __all__ = ["Equilibrium", "LinearGoals", "SolveStats"]
@@ -168,10 +169,7 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         moved = np.abs(self.forms.goal.x.array).max(initial=0.0)
         self.solved_xtol = 0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf
         self.u_eq = self.forms.uvec.copy()   # its displacement; warm start of the next solve
-        self.K = self.A.duplicate()          # K at the equilibrium, assembled on demand
-        self._K_ready = False
-        self._sens = None                    # cached dx/dp columns at the equilibrium
-        self.tangent_ksp = self._make_tangent_ksp(opts.prefix)
+        self.linearisation = Linearisation(self.forms, self.ksp.getPC(), opts.prefix)
         self.setup_time = time.perf_counter() - t0
 
     def set_xtol(self, xtol: float) -> None:
@@ -268,10 +266,9 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         return self.forms.active_goal_error()
 
     def destroy(self):
-        self._invalidate()
         for snes in (self._qn_snes, self._relax_snes):
             self._drop_snes(snes)
-        for obj in [self._newton_snes, self.tangent_ksp, self.K, self._x, self.stop,
-                    self._w, self._r, self.u_eq, self.forms]:
+        for obj in [self._newton_snes, self.linearisation, self._x, self.stop, self._w,
+                    self._r, self.u_eq, self.forms]:
             if obj is not None:
                 obj.destroy()

@@ -22,8 +22,9 @@ log = logging.getLogger(__name__)
 
 #: The PETSc objects' options prefixes, after the equilibrium's own (``orthodiff_fwd_``):
 #: Newton's SNES and the shared KSP (its factorisation) take ``<prefix>``, each quasi-Newton
-#: SNES ``<prefix>qn_``, the tangent solves' KSP ``<prefix>tangent_`` (docs/solver.md).
-QN_PREFIX, TANGENT_PREFIX = "qn_", "tangent_"
+#: SNES ``<prefix>qn_``, the tangent solves' KSP ``<prefix>tangent_`` (`fem.tangent`;
+#: docs/solver.md).
+QN_PREFIX = "qn_"
 #: MUMPS errors (INFOG(1)) of a too small workspace (ICNTL(14) is then doubled).
 MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
 
@@ -176,16 +177,6 @@ class KeptFactor:
         self.shift = shift
 
 
-class _ApplyOther:
-    """Python PC context that applies another, already built PC."""
-
-    def __init__(self, pc):
-        self.pc = pc
-
-    def apply(self, pc, x, y):
-        self.pc.apply(x, y)
-
-
 class Factorisation:
     """The KSP and its factorisation, kept across solves (mixin of
     `fem.equilibrium.Equilibrium`)."""
@@ -265,22 +256,6 @@ class Factorisation:
         return self._build_snes({**self._search, **METHODS["qn"], **self._options}, max_it,
                                 self.ksp, self._prefix + QN_PREFIX)
 
-    def _make_tangent_ksp(self, prefix: str):
-        """CG on K at the equilibrium, preconditioned by the kept factorisation (or GAMG
-        hierarchy) of the forward solves; `solve_tangent` decides when to rebuild it."""
-        ksp = PETSc.KSP().create(self.domain.comm)
-        ksp.setOptionsPrefix(prefix + TANGENT_PREFIX)
-        ksp.setType("cg")
-        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        ksp.setTolerances(rtol=1e-11, atol=1e-30, max_it=200)
-        ksp.setOperators(self.K)
-        pc = ksp.getPC()
-        pc.setType(PETSc.PC.Type.PYTHON)
-        pc.setPythonContext(_ApplyOther(self.ksp.getPC()))
-        self.K.setNearNullSpace(self.A.getNearNullSpace())   # for a PC of its own (GAMG)
-        ksp.setFromOptions()
-        return ksp
-
     def _drop_snes(self, snes):
         """Destroy a quasi-Newton SNES (None: nothing); first hand it a KSP of its own:
         destroying a SNES resets its KSP, which would throw away the shared factorisation.
@@ -303,35 +278,13 @@ class Factorisation:
         # assembled leaves it flagged unassembled: the first one is assembled)
         at_eq = x is self.u_eq   # K at the equilibrium: its p's normals, not the goals set
         if at_eq and A.assembled:
-            self._assemble_K()
-            self.K.copy(A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+            self.linearisation.matrix(self.p, self.u_eq).copy(
+                A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
             self.forms.jacobian(x, A, turns_at=self.p if at_eq else None)
         kept.factorise(A, self._stats, reuse=(
             self.method == "newton" and self.lag_its > 0 and kept.ready and not kept.refactor
             and kept.shift == 0 and self.ksp.getIterationNumber() <= self.lag_its))
-
-    def _invalidate(self):
-        self._K_ready = False
-        self.forget_sensitivities()
-
-    def forget_sensitivities(self):
-        """Drop the cached dx/dp (`sensitivity`): its next use, or `tangent_step`'s, solves."""
-        for v in self._sens or []:
-            v.destroy()
-        self._sens = None
-
-    def _assemble_K(self):
-        if self._K_ready:
-            return
-        self.forms.jacobian(self.u_eq, self.K, turns_at=self.p)
-        self._K_ready = True
-
-    def tangent_matrix(self) -> PETSc.Mat:
-        """K = df/du at the equilibrium (N×N, kPa·mm; Dirichlet rows identity), assembled
-        once per equilibrium and owned by the engine (do not destroy or change it)."""
-        self._assemble_K()
-        return self.K
 
     def factorise_at_equilibrium(self):
         """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a

@@ -179,7 +179,7 @@ class NonlinearSolves:
         self.forms.uvec.copy(self.u_eq)
         if moved:
             self.solved_xtol = self.xtol
-            self._invalidate()
+            self.linearisation.moved()
             self.kept.moved()
         st = self._stats
         st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
@@ -309,5 +309,5 @@ class NonlinearSolves:
         self.p = p.copy()
         u.copy(self.u_eq)
         self.forms.set_state(self.u_eq)
-        self._invalidate()
+        self.linearisation.moved()
         self.kept.moved()

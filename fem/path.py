@@ -32,7 +32,7 @@ class PathFollowing:
         out = self.u_eq.duplicate()
         out.set(0.0)
         if self.has_sensitivity and rhs is None:
-            out.maxpy(dp, self._sens)
+            out.maxpy(dp, self.linearisation.sensitivities)
             return out
         rhs = self.load(-dp) if rhs is None else rhs
         own = self.own_tangent_pc

@@ -1,6 +1,7 @@
-"""Tangent solves at the equilibrium: K⁻¹ rhs by CG on the kept factorisation (refactorised
-when it has gone stale), the sensitivities dx/dp (Np solves, cached) for adjoints and
-exploration.
+"""Tangent solves at the equilibrium: the linearisation there, a part that owns it
+(`Linearisation`: K, the tangent KSP, the cached dx/dp), and K⁻¹ rhs by CG on the kept
+factorisation (refactorised when it has gone stale) and the sensitivities dx/dp (Np solves,
+cached) for adjoints and exploration (`TangentSolves`, a mixin of `Equilibrium`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,79 @@ from meshes.errors import SolverError
 
 log = logging.getLogger(__name__)
 
+#: The tangent KSP's options prefix, after the equilibrium's (docs/solver.md).
+TANGENT_PREFIX = "tangent_"
+
+
+class _ApplyOther:
+    """Python PC context that applies another, already built PC."""
+
+    def __init__(self, pc):
+        self.pc = pc
+
+    def apply(self, pc, x, y):
+        self.pc.apply(x, y)
+
+
+class Linearisation:
+    """The linearisation at the current equilibrium, a part that owns it (`Equilibrium.
+    linearisation`): K = df/du there (assembled once per equilibrium, `matrix`), dx/dp there
+    (`sensitivities`, kept once computed) and the tangent KSP that solves with K: CG
+    preconditioned by the kept factorisation's PC (``factor_pc``), or by a PC of its own
+    chosen under ``<prefix>tangent_`` (`own_pc`). `moved` forgets K and dx/dp.
+
+    Args:
+        forms: the scene's `fem.forms.EnergyForms`; factor_pc: the kept factorisation's PC.
+    """
+
+    def __init__(self, forms, factor_pc, prefix: str):
+        self.forms = forms
+        self.K = forms.A.duplicate()
+        self._assembled = False
+        self.sensitivities = None   # dx/dp: Np PETSc vectors, mm per unit, or None
+        ksp = self.ksp = PETSc.KSP().create(forms.domain.comm)
+        ksp.setOptionsPrefix(prefix + TANGENT_PREFIX)
+        ksp.setType("cg")
+        ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        ksp.setTolerances(rtol=1e-11, atol=1e-30, max_it=200)
+        ksp.setOperators(self.K)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(_ApplyOther(factor_pc))
+        self.K.setNearNullSpace(forms.A.getNearNullSpace())   # for a PC of its own (GAMG)
+        ksp.setFromOptions()
+
+    def matrix(self, p, x) -> PETSc.Mat:
+        """K at the equilibrium x at p (its normals), assembled once until `moved`."""
+        if not self._assembled:
+            self.forms.jacobian(x, self.K, turns_at=p)
+            self._assembled = True
+        return self.K
+
+    def moved(self):
+        """The equilibrium changed: K is assembled again when asked for, dx/dp solved again."""
+        self._assembled = False
+        self.forget_sensitivities()
+
+    def forget_sensitivities(self):
+        """Drop the kept dx/dp."""
+        for v in self.sensitivities or []:
+            v.destroy()
+        self.sensitivities = None
+
+    @property
+    def own_pc(self) -> bool:
+        """The tangent solves have a preconditioner of their own, chosen by PETSc options
+        under ``<prefix>tangent_`` (e.g. ``-orthodiff_fwd_tangent_pc_type gamg``: CG with
+        algebraic multigrid on K, the rigid-body near-nullspace; docs/solver.md), instead of
+        the kept factorisation."""
+        return self.ksp.getPC().getType() != PETSc.PC.Type.PYTHON
+
+    def destroy(self):
+        self.forget_sensitivities()
+        self.ksp.destroy()
+        self.K.destroy()
+
 
 class TangentSolves:
     """Adjoint and sensitivity solves (mixin of `fem.equilibrium.Equilibrium`)."""
@@ -29,11 +103,12 @@ class TangentSolves:
         factorisation; ``solve(tangent=True)`` avoids that), or when CG fails; it then also
         serves the next solves as quasi-Newton's start. With a preconditioner of its own
         (`own_tangent_pc`) nothing is factorised. Returns the CG iteration count."""
-        self._assemble_K()
-        ksp = self.tangent_ksp
+        lin = self.linearisation
+        lin.matrix(self.p, self.u_eq)
+        ksp = lin.ksp
         far = self.factor is not FactorState.EQUILIBRIUM and \
             self._last_its > self.policy.tangent_lag_its
-        own = self.own_tangent_pc
+        own = lin.own_pc
         for attempt in range(2):
             if not own and (attempt or far or self.factor in (FactorState.NONE,
                                                                FactorState.STALE)):
@@ -47,7 +122,7 @@ class TangentSolves:
                     self.kept.slowed()
                 return ksp.getIterationNumber()
         raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
-                          f"(KSP reason {self.tangent_ksp.getConvergedReason()}): K is "
+                          f"(KSP reason {ksp.getConvergedReason()}): K is "
                           "singular or indefinite at this equilibrium")
 
     def sensitivity(self) -> list:
@@ -55,10 +130,11 @@ class TangentSolves:
         computed on first use and cached until the equilibrium changes. With a direct
         solver, one factorisation of K at the equilibrium and one block solve of all Np
         columns (MUMPS: ~ the cost of one column); else Np tangent solves."""
-        if self._sens is None:
-            self._sens = self._block_sensitivity() or [self.tangent_step(e)
-                                                       for e in np.eye(self.n_params)]
-        return self._sens
+        lin = self.linearisation
+        if lin.sensitivities is None:
+            lin.sensitivities = self._block_sensitivity() or [self.tangent_step(e)
+                                                              for e in np.eye(self.n_params)]
+        return lin.sensitivities
 
     def _block_sensitivity(self):
         """dx/dp as one MatMatSolve with the factor of K at the equilibrium, or None (not a
@@ -93,13 +169,24 @@ class TangentSolves:
 
     @property
     def own_tangent_pc(self) -> bool:
-        """The tangent solves have a preconditioner of their own, chosen by PETSc options
-        under ``<prefix>tangent_`` (e.g. ``-orthodiff_fwd_tangent_pc_type gamg``: CG with
-        algebraic multigrid on K, the rigid-body near-nullspace; docs/solver.md), instead of
-        the kept factorisation."""
-        return self.tangent_ksp.getPC().getType() != PETSc.PC.Type.PYTHON
+        """The tangent solves have a preconditioner of their own (`Linearisation.own_pc`)."""
+        return self.linearisation.own_pc
 
     @property
     def has_sensitivity(self) -> bool:
         """dx/dp is cached for the current equilibrium (direct mode costs nothing more)."""
-        return self._sens is not None
+        return self.linearisation.sensitivities is not None
+
+    @property
+    def tangent_ksp(self) -> PETSc.KSP:
+        """The tangent solves' KSP (`Linearisation.ksp`), to read, not to change."""
+        return self.linearisation.ksp
+
+    def tangent_matrix(self) -> PETSc.Mat:
+        """K = df/du at the equilibrium (N×N, kPa·mm; Dirichlet rows identity), assembled
+        once per equilibrium and owned by the engine (do not destroy or change it)."""
+        return self.linearisation.matrix(self.p, self.u_eq)
+
+    def forget_sensitivities(self):
+        """Drop the cached dx/dp (`sensitivity`): its next use, or `tangent_step`'s, solves."""
+        self.linearisation.forget_sensitivities()

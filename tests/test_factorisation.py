@@ -109,3 +109,30 @@ def test_a_new_equilibrium_keeps_no_factorisation_as_its_own(method):
     scene.solve([0.6, 0.2])
     assert eq.factor is FactorState.ITERATE
     eq.destroy()
+
+
+def test_k_at_the_equilibrium_is_assembled_once_per_equilibrium(monkeypatch):
+    """The linearisation (`fem.tangent.Linearisation`) assembles K at the equilibrium once,
+    for the factorisation there, the sensitivities and `tangent_matrix` alike; a new
+    equilibrium assembles it again, with its own state, and drops dx/dp."""
+    scene = _scene()
+    eq = scene.eq
+    scene.solve([0.5, -0.8])
+    K, real = eq.linearisation.K, eq.forms.jacobian
+    at_eq = []   # the states K was assembled at
+    monkeypatch.setattr(eq.forms, "jacobian", lambda x, out, turns_at=None: (
+        out is K and at_eq.append(x.array.copy())) or real(x, out, turns_at))
+    eq.sensitivity()
+    assert eq.tangent_matrix() is K and len(at_eq) == 1 and eq.has_sensitivity
+    scene.solve([0.6, -0.8])
+    assert not eq.has_sensitivity
+    eq.tangent_matrix()
+    eq.sensitivity()
+    assert len(at_eq) == 2
+    np.testing.assert_array_equal(at_eq[1], eq.u_eq.array)
+    expected = K.duplicate()
+    real(eq.u_eq, expected)
+    expected.axpy(-1.0, K)
+    assert expected.norm() == 0.0
+    expected.destroy()
+    eq.destroy()
