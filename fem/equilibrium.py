@@ -30,7 +30,8 @@ sensitivity solves.
 
 The engine's parts, which own their state: `fem.forms.EnergyForms` (the energy, its forms and
 the fields they are evaluated at, ``Equilibrium.forms``), `fem.factorisation.KeptFactor`
-(what the kept factorisation holds, ``.kept``), `fem.tangent.Linearisation` (K and dx/dp at
+(what the kept factorisation holds, ``.kept``), `fem.factorisation.SnesSet` (the SNES
+objects that share it, ``.snes_set``), `fem.tangent.Linearisation` (K and dx/dp at
 the equilibrium, the tangent KSP, ``.linearisation``) and `fem.stopping.StoppingTest` (every
 SNES solve's stopping test, ``.stop``); and its rooms, mixins of `Equilibrium`, one job each:
 `fem.factorisation` (when K is assembled and refactorised), `fem.nonlinear` (the nonlinear
@@ -49,13 +50,13 @@ import time
 import numpy as np
 
 from fem.domain import Domain
-from fem.factorisation import Factorisation
+from fem.factorisation import Factorisation, KeptFactor, SnesCallbacks, SnesSet
 from fem.forms import DEFAULT_PENALTY, EnergyForms
 from fem.limits import check
 from fem.material import HOMOGENEOUS, NeoHookean, Tissues
 from fem.nonlinear import NonlinearSolves, SolveStats
 from fem.path import PathFollowing
-from fem.policy import EquilibriumOptions
+from fem.policy import METHOD_DEFAULTS, EquilibriumOptions
 from fem.stopping import StoppingTest
 from fem.tangent import Linearisation, TangentSolves
 from meshes.errors import InputError
@@ -159,7 +160,18 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         self._x = self.forms.uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
         self.shift_retry = opts.shift_retry
         self._stats = SolveStats()
-        self.ksp, self.kept = self._make_snes(opts.prefix, opts.solver, opts.options)
+        forms = self.forms   # late-bound callbacks: a test may replace a method
+        self.snes_set = SnesSet(domain.comm, forms.A, forms.b, SnesCallbacks(
+            residual=lambda x, b: forms.residual(x, b), energy=lambda x: forms.energy(x),
+            jacobian=lambda snes, x, A: self._jacobian(snes, x, A),
+            converged=lambda snes, it, norms: self.stop(snes, it, norms),
+            precheck=lambda x, y: self.stop.precheck(x, y),
+            line_search=lambda x, y: self._critical_step(x, y)),
+            opts.prefix, opts.solver, opts.options,
+            METHOD_DEFAULTS["newton"]["max_it"] if self.method != "newton" else self.max_it)
+        self.ksp = self.snes_set.ksp
+        self.kept = KeptFactor(self.ksp, domain.comm, self.snes_set.settings, opts.prefix,
+                               opts.shift_max, self.policy)
         self.stop = StoppingTest(self.forms.uvec, self.policy, self.kept)
         self._w, self._r = self._x.duplicate(), self.forms.b.duplicate()   # line-search trial
         self._last_its = 0                   # iterations of the last SNES solve
@@ -266,9 +278,7 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         return self.forms.active_goal_error()
 
     def destroy(self):
-        for snes in (self._qn_snes, self._relax_snes):
-            self._drop_snes(snes)
-        for obj in [self._newton_snes, self.linearisation, self._x, self.stop, self._w,
+        for obj in [self.snes_set, self.linearisation, self._x, self.stop, self._w,
                     self._r, self.u_eq, self.forms]:
             if obj is not None:
                 obj.destroy()

@@ -1,7 +1,7 @@
 """The kept factorisation of K: `KeptFactor`, the part that owns it (the shared KSP, MUMPS
 set-up and workspace retries, the inertia check and its diagonal shifts, its `FactorState`),
-and the SNES objects that share it (`Factorisation`, a mixin of `Equilibrium`: when K is
-assembled and refactorised).
+the SNES objects that share it (`SnesSet`, a part), and when K is assembled and refactorised
+(`Factorisation`, a mixin of `Equilibrium`).
 """
 
 from __future__ import annotations
@@ -9,13 +9,15 @@ from __future__ import annotations
 from mpi4py import MPI
 from petsc4py import PETSc
 
+import dataclasses
 import enum
 import logging
 import time
+from typing import Callable
 
 import numpy as np
 
-from fem.policy import METHOD_DEFAULTS, METHODS, PRESETS
+from fem.policy import METHODS, PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -177,94 +179,148 @@ class KeptFactor:
         self.shift = shift
 
 
-class Factorisation:
-    """The KSP and its factorisation, kept across solves (mixin of
-    `fem.equilibrium.Equilibrium`)."""
+@dataclasses.dataclass(frozen=True)
+class SnesCallbacks:
+    """What every SNES calls, as functions of their arguments: ``residual(x, out)``,
+    ``energy(x)`` (the line search's objective), ``jacobian(snes, x, A)`` (assemble and
+    factorise, or keep the factor), ``converged(snes, it, norms)`` (the stopping test),
+    ``precheck(x, y)`` (Newton's line-search pre-check) and ``line_search(x, y)`` (quasi-Newton's
+    critical-point search, run as its pre-check; scales y)."""
 
-    def _make_snes(self, prefix: str, solver: str, options: dict):
-        """Newton's SNES, which owns the KSP (factorisation) that every solve shares, and
-        the `KeptFactor` that owns that factorisation: (ksp, kept); preset
-        options under ``prefix`` (the command line wins). ``options`` (PETSc options without
-        a prefix) reach whichever SNES runs: Newton's here, each quasi-Newton one when made
-        (`_fresh_qn_snes`, under ``<prefix>qn_``)."""
-        self._prefix, self._options = prefix, dict(options)
-        self._search = {"snes_linesearch_type": "bt", "snes_linesearch_max_it": 40,
-                        "snes_max_linear_solve_fail": 1}
-        settings = {**METHODS["newton"], **self._search, **PRESETS[solver], **options}
-        self._newton_snes = self._build_snes(settings, METHOD_DEFAULTS["newton"]["max_it"]
-                                             if self.method != "newton" else self.max_it)
-        self._qn_snes = None      # the last solve's quasi-Newton SNES
-        self._relax_snes = None   # relax()'s, its L-BFGS pairs kept until a solve iterates
-        ksp = self._newton_snes.getKSP()
-        ksp.setOperators(self.A)
-        self.solver_name = solver
-        return ksp, KeptFactor(ksp, self.domain.comm, settings, prefix,
-                               self.settings.shift_max, self.policy)
+    residual: Callable
+    energy: Callable
+    jacobian: Callable
+    converged: Callable
+    precheck: Callable
+    line_search: Callable
 
-    def _build_snes(self, settings: dict, max_it: int, ksp=None, prefix: str | None = None):
-        """A SNES with our callbacks and line search checks, configured from ``settings``
-        (PETSc options under ``prefix``, default the equilibrium's; the command line wins),
-        which are removed from the global database afterwards. ``ksp``: share this KSP and
-        its factorisation, as set up (its options are not read again)."""
+
+class SnesSet:
+    """The SNES objects of one equilibrium, a part that owns them, each under its options
+    prefix (docs/solver.md): Newton's (``<prefix>``), which owns the KSP that every solve
+    shares (`ksp`, the kept factorisation's); the quasi-Newton one of the current solve
+    (``<prefix>qn_``, fresh per solve: `method`); relaxation's (`relaxation`, its L-BFGS pairs
+    kept until `drop_relaxation`). Preset options under the prefixes, the command line wins;
+    ``options`` (PETSc options without a prefix) reach whichever SNES runs.
+
+    Args:
+        comm: the scene's communicator; A, b: the Jacobian matrix and function vector
+            (`fem.forms.EnergyForms`); callbacks: `SnesCallbacks`; solver: a `PRESETS` key;
+            newton_max_it: Newton's iteration cap.
+    """
+
+    #: Newton's backtracking line search on the energy, and one failed linear solve per step.
+    SEARCH = {"snes_linesearch_type": "bt", "snes_linesearch_max_it": 40,
+              "snes_max_linear_solve_fail": 1}
+
+    def __init__(self, comm, A, b, callbacks: SnesCallbacks, prefix: str, solver: str,
+                 options: dict, newton_max_it: int):
+        self.comm, self.A, self.b, self.callbacks = comm, A, b, callbacks
+        self.prefix, self.options, self.solver = prefix, dict(options), solver
+        #: Newton's options as set (the kept factorisation reads its MUMPS ICNTL from them)
+        self.settings = {**METHODS["newton"], **self.SEARCH, **PRESETS[solver], **options}
+        self.newton = self._build(self.settings, newton_max_it)
+        self.qn = None            # the current solve's quasi-Newton SNES
+        self.relaxation = None    # relaxation's, its L-BFGS pairs kept until a solve iterates
+        self.ksp = self.newton.getKSP()
+        self.ksp.setOperators(A)
+
+    def _build(self, settings: dict, max_it: int, ksp=None, prefix: str | None = None):
+        """A SNES with the callbacks, configured from ``settings`` (PETSc options under
+        ``prefix``, default the equilibrium's; the command line wins), which are removed from
+        the global database afterwards. ``ksp``: share this KSP and its factorisation, as
+        set up (its options are not read again)."""
         opts = PETSc.Options()
-        prefix = self._prefix if prefix is None else prefix
-        snes = PETSc.SNES().create(self.domain.comm)
+        prefix = self.prefix if prefix is None else prefix
+        cb = self.callbacks
+        snes = PETSc.SNES().create(self.comm)
         snes.setOptionsPrefix(prefix)
         mine = [k for k in settings if not opts.hasName(prefix + k)]
         for k in mine:
             opts[prefix + k] = settings[k]
-        # late-bound callbacks: a test may replace a method on the instance
-        forms = self.forms
-        snes.setFunction(lambda s, x, b: forms.residual(x, b), forms.b)
-        snes.setJacobian(lambda s, x, A, P: self._jacobian(s, x, A, P), self.A)
-        snes.setObjective(lambda s, x: forms.energy(x))
-        snes.setConvergenceTest(lambda s, it, norms: self.stop(s, it, norms))
+        snes.setFunction(lambda s, x, b: cb.residual(x, b), self.b)
+        snes.setJacobian(lambda s, x, A, P: cb.jacobian(s, x, A), self.A)
+        snes.setObjective(lambda s, x: cb.energy(x))
+        snes.setConvergenceTest(lambda s, it, norms: cb.converged(s, it, norms))
         snes.setTolerances(max_it=max_it)
         snes.setFromOptions()
-        snes.setLineSearchPreCheck(self._critical_step if snes.getType() == "qn"
-                                   else lambda x, y, *a: self.stop.precheck(x, y))
+        snes.setLineSearchPreCheck(
+            (lambda x, y, *a: cb.line_search(x, y)) if snes.getType() == "qn"
+            else lambda x, y, *a: cb.precheck(x, y))
         if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
             snes.setKSP(ksp)
         for k in mine:
             opts.delValue(prefix + k)
         return snes
 
+    def _new_qn(self, max_it: int):
+        """A new quasi-Newton SNES on the shared KSP, its options under ``<prefix>qn_``
+        (`QN_PREFIX`), the API's ``options`` with them."""
+        return self._build({**self.SEARCH, **METHODS["qn"], **self.options}, max_it,
+                           self.ksp, self.prefix + QN_PREFIX)
+
+    def method(self, newton: bool, max_it: int):
+        """The SNES for the next solve: Newton's, or a fresh quasi-Newton one (PETSc 3.18's
+        SNESQN keeps its L-BFGS pairs from one solve to the next, pairs across different
+        goals: wrong curvature; a new one on the shared KSP costs a few ms), the previous
+        one destroyed."""
+        if newton:
+            return self.newton
+        self._drop(self.qn)
+        self.qn = self._new_qn(max_it)
+        return self.qn
+
+    def relax(self, iterations: int, resume: bool):
+        """Relaxation's quasi-Newton SNES with ``iterations`` steps at most, on the kept
+        factor (its Jacobian callback does nothing); ``resume``: the last one, with its
+        L-BFGS pairs, where no solve iterated since."""
+        if not resume or self.relaxation is None:
+            self.drop_relaxation()
+            self.relaxation = self._new_qn(iterations)
+            self.relaxation.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factor
+        self.relaxation.setTolerances(max_it=iterations)
+        return self.relaxation
+
+    def drop_relaxation(self):
+        """Relaxation's L-BFGS pairs do not outlive a path: a solve drops them."""
+        self._drop(self.relaxation)
+        self.relaxation = None
+
+    def _drop(self, snes):
+        """Destroy a quasi-Newton SNES (None: nothing); first hand it a KSP of its own:
+        destroying a SNES resets its KSP, which would throw away the shared factorisation."""
+        if snes is not None:
+            snes.setKSP(PETSc.KSP().create(self.comm))
+            snes.destroy()
+
+    def destroy(self):
+        for snes in (self.qn, self.relaxation):
+            self._drop(snes)
+        self.newton.destroy()
+
+
+class Factorisation:
+    """When K is assembled and the kept factorisation refactorised (mixin of
+    `fem.equilibrium.Equilibrium`)."""
+
     @property
     def snes(self) -> dict:
         """The PETSc SNES objects, ``{"newton": ..., "qn": ...}`` (the quasi-Newton one of the
         last solve, None before one), to read their options and tolerances, not to change."""
-        return {"newton": self._newton_snes, "qn": self._qn_snes}
+        return {"newton": self.snes_set.newton, "qn": self.snes_set.qn}
+
+    @property
+    def solver_name(self) -> str:
+        """The linear solver preset (a `PRESETS` key)."""
+        return self.snes_set.solver
 
     def _method_snes(self):
         """The SNES for the next solve: Newton when asked for, or when xtol is below
-        `SolverPolicy.qn_min_xtol`. PETSc 3.18's SNESQN keeps its L-BFGS pairs from one solve to the
-        next (pairs across different goals: wrong curvature), so quasi-Newton gets a fresh
-        one on the shared KSP each time (a few ms)."""
-        if self.method == "newton" or self.xtol < self.policy.qn_min_xtol:
-            return self._newton_snes
-        return self._fresh_qn_snes(self.max_it)
+        `SolverPolicy.qn_min_xtol`; else a fresh quasi-Newton one (`SnesSet.method`)."""
+        return self.snes_set.method(
+            self.method == "newton" or self.xtol < self.policy.qn_min_xtol, self.max_it)
 
-    def _fresh_qn_snes(self, max_it: int):
-        """A new quasi-Newton SNES for a solve (the previous one destroyed): `_new_qn_snes`."""
-        self._drop_snes(self._qn_snes)
-        self._qn_snes = self._new_qn_snes(max_it)
-        return self._qn_snes
-
-    def _new_qn_snes(self, max_it: int):
-        """A new quasi-Newton SNES on the shared KSP, its options under ``<prefix>qn_``
-        (`QN_PREFIX`), the API's ``options`` with them."""
-        return self._build_snes({**self._search, **METHODS["qn"], **self._options}, max_it,
-                                self.ksp, self._prefix + QN_PREFIX)
-
-    def _drop_snes(self, snes):
-        """Destroy a quasi-Newton SNES (None: nothing); first hand it a KSP of its own:
-        destroying a SNES resets its KSP, which would throw away the shared factorisation.
-        The caller forgets it."""
-        if snes is not None:
-            snes.setKSP(PETSc.KSP().create(self.domain.comm))
-            snes.destroy()
-
-    def _jacobian(self, snes, x, A, P):
+    def _jacobian(self, snes, x, A):
         """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
         inertia is checked right after factorisation, and the shift raised until K is PD.
         Quasi-Newton keeps the last factorisation (nothing assembled) while it serves: it
@@ -291,7 +347,7 @@ class Factorisation:
         diagonal shift only where K is not positive definite there); K is assembled once.
         The tangent solves do so when they need to; callers force it (tests, timing)."""
         self.kept.request_refactor()
-        self._jacobian(self._newton_snes, self.u_eq, self.A, self.A)
+        self._jacobian(self.snes_set.newton, self.u_eq, self.A)
         self.ksp.setOperators(self.A)
         self.ksp.getPC().setUp()
         self.forms.set_state(self.u_eq)

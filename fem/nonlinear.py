@@ -237,8 +237,7 @@ class NonlinearSolves:
         `SolverError` when Newton fails even with the largest retry shift, or when
         quasi-Newton fails and ``qn_only``. ``quick``: at most
         `SolverPolicy.quick_refreshes` stall refreshes."""
-        self._drop_snes(self._relax_snes)   # a path's relax() pairs do not outlive its solve
-        self._relax_snes = None
+        self.snes_set.drop_relaxation()   # a path's relax() pairs do not outlive its solve
         snes = self._method_snes()
         shift = 0.0   # the Jacobian callback lets kept.shift decay; this one only grows
         refreshes, f_start = 0, None   # f_start: the residual norm at the start
@@ -255,7 +254,7 @@ class NonlinearSolves:
                 if gap <= self.policy.goal_failure_mm:
                     return
                 crushed = True
-                if snes is self._newton_snes:
+                if snes is self.snes_set.newton:
                     raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
                                       f"= {self.min_det_F():.1e})")
@@ -267,21 +266,21 @@ class NonlinearSolves:
                     self.stop.norms[-1] <= self.policy.quick_refresh_progress * f_start
             else:
                 refresh = refreshes < self.policy.qn_refreshes
-            if snes is not self._newton_snes and (why == "tangent" or why == "stalled" and
+            if snes is not self.snes_set.newton and (why == "tangent" or why == "stalled" and
                                                   refresh):
                 refreshes += why == "stalled"   # K at the current iterate, fresh pairs, go on
                 log.info("qn %s after %d iterations: refactorising there", why, self._last_its)
                 snes = self._method_snes()
                 continue
-            if snes is not self._newton_snes and qn_only:
+            if snes is not self.snes_set.newton and qn_only:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
-            if snes is not self._newton_snes:   # Newton from quasi-Newton's iterate if sound
+            if snes is not self.snes_set.newton:   # Newton from quasi-Newton's iterate if sound
                 sound = not crushed and self.forms.sound(self._x)
                 log.info("%s: SNES reason %d after %d iterations%s: Newton takes over from %s",
                          snes.getType(), reason, self._last_its,
                          " (tissue crushed)" if crushed else "",
                          "there" if sound else "the start")
-                snes = self._newton_snes
+                snes = self.snes_set.newton
                 if not sound:
                     start.copy(self._x)
                 continue

@@ -177,12 +177,7 @@ class PathFollowing:
             self.factorise_at_equilibrium()
         # residual tolerance relative to the start's residual
         self.stop.start(self.xtol, self.frtol, self.atol, self._stats.residual_history)
-        if not resume or self._relax_snes is None:
-            self._drop_snes(self._relax_snes)
-            self._relax_snes = self._new_qn_snes(iterations)
-            self._relax_snes.setJacobian(lambda s, x, A, P: None, self.A)   # keep the factor
-        snes = self._relax_snes
-        snes.setTolerances(max_it=iterations)
+        snes = self.snes_set.relax(iterations, resume)
         x0 = x.copy()
         try:
             self.stop.run(snes, x)

@@ -136,3 +136,34 @@ def test_k_at_the_equilibrium_is_assembled_once_per_equilibrium(monkeypatch):
     assert expected.norm() == 0.0
     expected.destroy()
     eq.destroy()
+
+
+def test_the_snes_set_shares_one_ksp_and_keeps_relaxations_pairs_until_dropped():
+    """`SnesSet`: every quasi-Newton SNES (a fresh one per solve, relaxation's) uses Newton's
+    KSP, so one factorisation serves them all, and dropping one keeps that KSP's factor;
+    relaxation's SNES is resumed until dropped; each has its options prefix."""
+    scene = _scene()
+    eq = scene.eq
+    scene.solve([0.5, -0.8])
+    eq.factorise_at_equilibrium()
+    sset, ksp = eq.snes_set, eq.snes_set.ksp
+    first = sset.method(False, 5)
+    second = sset.method(False, 5)
+    assert first.handle == 0 and second is sset.qn   # the first was destroyed
+    relax = sset.relax(3, resume=False)
+    assert sset.relax(4, resume=True) is relax and relax.getTolerances()[3] == 4
+    sset.drop_relaxation()
+    assert sset.relaxation is None and sset.relax(3, resume=True) is not relax
+    for snes in (second, sset.relaxation):
+        assert snes.getKSP().handle == ksp.handle
+        assert snes.getOptionsPrefix() == "orthodiff_fwd_qn_"
+    assert sset.method(True, 5) is sset.newton and sset.newton.getOptionsPrefix() == \
+        "orthodiff_fwd_"
+    assert ksp.getPC().getFactorMatrix().handle != 0   # the factor survives the drops
+    rhs, out = eq.load(-np.array([0.1, 0.0])), eq.u_eq.duplicate()
+    ksp.getPC().apply(rhs, out)
+    np.testing.assert_allclose(out.array, 0.1 * eq.sensitivity()[0].array, rtol=1e-8,
+                               atol=1e-12)
+    for v in (rhs, out):
+        v.destroy()
+    eq.destroy()
