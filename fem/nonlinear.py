@@ -21,8 +21,10 @@ log = logging.getLogger(__name__)
 
 @dataclasses.dataclass
 class SolveStats:
-    """What one equilibrium solve did. Times in seconds; ``iterations``: nonlinear iterations
-    of whichever method ran (quasi-Newton, Newton, the path's)."""
+    """What one equilibrium solve did. Times in seconds: ``assemble`` every assembly of the
+    energy, f and K during it (the prediction's K at the equilibrium included),
+    ``linear_solve`` the rest of ``total``, of which ``factor`` factorising. ``iterations``:
+    nonlinear iterations of whichever method ran (quasi-Newton, Newton, the path's)."""
 
     iterations: int = 0
     shifts: list = dataclasses.field(default_factory=list)
