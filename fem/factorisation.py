@@ -156,6 +156,14 @@ class KeptFactor:
         log.warning("MUMPS factorisation failed (INFOG(1) = %d)", err)
         return -1
 
+    def serves(self, its: int, lag_its: int, unshifted: bool = False) -> bool:
+        """The factorisation held may serve the next Jacobian instead of a new one: one is
+        held, no refactorisation was asked for, no shift is pending, the solve that used it
+        last needed at most ``lag_its`` iterations (``its``), and, ``unshifted``, it was not
+        shifted (quasi-Newton's inverse Hessian; Newton's lagged CG only preconditions)."""
+        return (self.ready and not self.refactor and self.shift == 0 and its <= lag_its
+                and not (unshifted and self.step_shift != 0))
+
     def at_equilibrium(self):
         """The factor just made was of K at the equilibrium: EQUILIBRIUM, or SHIFTED."""
         self.state = FactorState.EQUILIBRIUM if self.step_shift == 0 else FactorState.SHIFTED
@@ -323,11 +331,12 @@ class Factorisation:
     def _jacobian(self, snes, x, A):
         """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
         inertia is checked right after factorisation, and the shift raised until K is PD.
-        Quasi-Newton keeps the last factorisation (nothing assembled) while it serves: it
-        was not shifted and the last solve needed at most ``lag_its`` iterations."""
+        Quasi-Newton keeps the last factorisation (nothing assembled) while it serves
+        (`KeptFactor.serves`: unshifted, the last solve within ``lag_its`` iterations);
+        Newton with ``lag_its`` > 0 keeps it as CG's preconditioner while it serves."""
         kept = self.kept
-        if (snes is not None and snes.getType() == "qn" and kept.ready and not kept.refactor
-                and kept.shift == 0 and kept.step_shift == 0 and self._last_its <= self.lag_its):
+        if snes is not None and snes.getType() == "qn" and kept.serves(self._last_its,
+                                                                       self.lag_its, True):
             self._stats.lagged += 1
             return
         # K at the equilibrium: assembled once, copied (MatCopy into a matrix never
@@ -338,9 +347,8 @@ class Factorisation:
                 A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
             self.forms.jacobian(x, A, turns_at=self.p if at_eq else None)
-        kept.factorise(A, self._stats, reuse=(
-            self.method == "newton" and self.lag_its > 0 and kept.ready and not kept.refactor
-            and kept.shift == 0 and self.ksp.getIterationNumber() <= self.lag_its))
+        kept.factorise(A, self._stats, reuse=self.method == "newton" and self.lag_its > 0 and
+                       kept.serves(self.ksp.getIterationNumber(), self.lag_its))
 
     def factorise_at_equilibrium(self):
         """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a

@@ -167,3 +167,37 @@ def test_the_snes_set_shares_one_ksp_and_keeps_relaxations_pairs_until_dropped()
     for v in (rhs, out):
         v.destroy()
     eq.destroy()
+
+
+def test_a_kept_factorisation_serves_only_while_nothing_asks_for_a_new_one():
+    """`KeptFactor.serves`: none held, a refactorisation asked for, a shift pending, a slow
+    last solve, or (for quasi-Newton) a shifted factor: a new one; else it serves."""
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from fem.factorisation import KeptFactor
+    from fem.nonlinear import SolveStats
+
+    A = PETSc.Mat().createAIJ((3, 3), nnz=1, comm=MPI.COMM_SELF)
+    for i in range(3):
+        A.setValue(i, i, 2.0)
+    A.assemble()
+    ksp = PETSc.KSP().create(MPI.COMM_SELF)
+    ksp.getPC().setType("none")
+    kept, stats = KeptFactor(ksp, MPI.COMM_SELF, {}, "unit_", 1e6, DEFAULT_POLICY), SolveStats()
+    assert not kept.serves(0, 30)                      # nothing held
+    kept.factorise(A, stats)
+    assert kept.state is FactorState.ITERATE and stats.factorisations == 1
+    assert kept.serves(30, 30) and not kept.serves(31, 30)
+    kept.request_refactor()
+    assert not kept.serves(0, 30)
+    kept.factorise(A, stats)                           # the request is met
+    assert kept.serves(0, 30)
+    kept.set_shift(0.5)
+    assert not kept.serves(0, 30)                      # a shift pending
+    kept.factorise(A, stats)                           # a shifted factor
+    kept.set_shift(0.0)
+    assert kept.step_shift == 0.5
+    assert kept.serves(0, 30) and not kept.serves(0, 30, unshifted=True)
+    for obj in (ksp, A):
+        obj.destroy()
