@@ -174,8 +174,8 @@ class NonlinearSolves:
     def _commit(self, p, clock, moved: bool = True) -> SolveStats:
         """Make the current state u the equilibrium at p; finish the stats (``clock``: the
         solve's start, and the forms' assembly seconds then); report a goal the tissue did
-        not let the bone reach. ``moved=False`` (a failed solve that made no
-        step): the equilibrium, its accuracy, K and dx/dp there are kept."""
+        not let the bone reach. ``moved=False`` (a failed solve that made no step): the
+        equilibrium, its accuracy, K and dx/dp there are kept."""
         self.set_params(p)
         self.p = p.copy()
         self.forms.uvec.copy(self.u_eq)
