@@ -181,7 +181,7 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         moved = np.abs(self.forms.goal.x.array).max(initial=0.0)
         self.solved_xtol = 0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf
         self.u_eq = self.forms.uvec.copy()   # its displacement; warm start of the next solve
-        self.linearisation = Linearisation(self.forms, self.ksp.getPC(), opts.prefix)
+        self.linearisation = Linearisation(self.forms, self.kept, opts.prefix, self.policy)
         self.setup_time = time.perf_counter() - t0
 
     def set_xtol(self, xtol: float) -> None:

@@ -36,14 +36,17 @@ class Linearisation:
     linearisation`): K = df/du there (assembled once per equilibrium, `matrix`), dx/dp there
     (`sensitivities`, kept once computed) and the tangent KSP that solves with K: CG
     preconditioned by the kept factorisation's PC (``factor_pc``), or by a PC of its own
-    chosen under ``<prefix>tangent_`` (`own_pc`). `moved` forgets K and dx/dp.
+    chosen under ``<prefix>tangent_`` (`own_pc`): `solve` and `block_solve`. `moved` forgets K
+    and dx/dp.
 
     Args:
-        forms: the scene's `fem.forms.EnergyForms`; factor_pc: the kept factorisation's PC.
+        forms: the scene's `fem.forms.EnergyForms`; kept: the kept factorisation
+            (`fem.factorisation.KeptFactor`); policy: `fem.policy.SolverPolicy`.
     """
 
-    def __init__(self, forms, factor_pc, prefix: str):
-        self.forms = forms
+    def __init__(self, forms, kept, prefix: str, policy):
+        self.forms, self.kept, self.policy = forms, kept, policy
+        factor_pc = kept.ksp.getPC()
         self.K = forms.A.duplicate()
         self._assembled = False
         self.sensitivities = None   # dx/dp: Np PETSc vectors, mm per unit, or None
@@ -85,6 +88,69 @@ class Linearisation:
         the kept factorisation."""
         return self.ksp.getPC().getType() != PETSc.PC.Type.PYTHON
 
+    def solve(self, rhs: PETSc.Vec, out: PETSc.Vec, p, x: PETSc.Vec, last_its: int,
+              refactorise) -> int:
+        """out = K⁻¹ rhs, K at the equilibrium x at p (collective; Dirichlet rows identity).
+        CG preconditioned by the kept factorisation; ``refactorise()`` rebuilds it at the
+        equilibrium when the previous tangent solve needed more than
+        `SolverPolicy.tangent_lag_its` iterations with it (STALE), when the last forward
+        solve did (``last_its``: quasi-Newton from a factorisation far from here; at medium
+        size CG then took 63 iterations, 3x a factorisation; ``solve(tangent=True)`` avoids
+        that), or when CG fails; it then also serves the next solves as quasi-Newton's
+        start. With a preconditioner of its own (`own_pc`) nothing is factorised. Returns
+        the CG iteration count; raises `SolverError` where GMRES fails too."""
+        self.matrix(p, x)
+        ksp, kept, lag = self.ksp, self.kept, self.policy.tangent_lag_its
+        far = kept.state is not FactorState.EQUILIBRIUM and last_its > lag
+        own = self.own_pc
+        for attempt in range(2):
+            if not own and (attempt or far or kept.state in (FactorState.NONE,
+                                                             FactorState.STALE)):
+                refactorise()
+            ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
+            ksp.solve(rhs, out)
+            if ksp.getConvergedReason() > 0:
+                if attempt:
+                    ksp.setType("cg")
+                if not own and ksp.getIterationNumber() > lag:
+                    kept.slowed()
+                return ksp.getIterationNumber()
+        raise SolverError(f"tangent solve with K at p = {np.round(p, 4).tolist()} failed "
+                          f"(KSP reason {ksp.getConvergedReason()}): K is "
+                          "singular or indefinite at this equilibrium")
+
+    def block_solve(self, columns: list, x: PETSc.Vec, refactorise):
+        """-K⁻¹ c for each PETSc vector c of ``columns`` (e.g. df/dp) as one MatMatSolve with
+        the factor of K at the equilibrium x (``refactorise()`` makes it, where it is not
+        held): a list of new vectors, or None (not a Cholesky preset, no block solve in its
+        package, no columns, or K not positive definite there)."""
+        pc = self.kept.ksp.getPC()
+        if pc.getType() != "cholesky" or not columns or self.own_pc:
+            return None
+        if self.kept.state is not FactorState.EQUILIBRIUM:
+            refactorise()
+            if self.kept.state is FactorState.SHIFTED:   # the tangent solves handle it
+                return None
+        n, N, m = x.getLocalSize(), x.getSize(), len(columns)
+        rhs = PETSc.Mat().createDense([(n, N), (None, m)], comm=self.forms.domain.comm)
+        rhs.setUp()
+        rhs.getDenseArray()[:] = -np.stack([c.array_r for c in columns], axis=1)
+        rhs.assemble()
+        sol = rhs.duplicate()
+        out = []
+        try:
+            pc.getFactorMatrix().matSolve(rhs, sol)
+            cols = sol.getDenseArray()
+            for i in range(m):
+                out.append(x.duplicate())
+                out[-1].array[:] = cols[:, i]
+        except PETSc.Error:   # a factorisation package without block solves
+            out = None
+        finally:
+            for mat in (rhs, sol):
+                mat.destroy()
+        return out
+
     def destroy(self):
         self.forget_sensitivities()
         self.ksp.destroy()
@@ -96,34 +162,11 @@ class TangentSolves:
 
     def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
         """out = K⁻¹ rhs, K = df/du at the current equilibrium (collective; Dirichlet rows
-        are identity). CG preconditioned by the kept factorisation; it is rebuilt at the
-        equilibrium when the previous tangent solve needed more than `SolverPolicy.tangent_lag_its`
-        iterations with it, when the last forward solve did (quasi-Newton from a
-        factorisation far from here: at medium size CG then took 63 iterations, 3x a
-        factorisation; ``solve(tangent=True)`` avoids that), or when CG fails; it then also
-        serves the next solves as quasi-Newton's start. With a preconditioner of its own
-        (`own_tangent_pc`) nothing is factorised. Returns the CG iteration count."""
-        lin = self.linearisation
-        lin.matrix(self.p, self.u_eq)
-        ksp = lin.ksp
-        far = self.factor is not FactorState.EQUILIBRIUM and \
-            self._last_its > self.policy.tangent_lag_its
-        own = lin.own_pc
-        for attempt in range(2):
-            if not own and (attempt or far or self.factor in (FactorState.NONE,
-                                                               FactorState.STALE)):
-                self.factorise_at_equilibrium()
-            ksp.setType("cg" if attempt == 0 else "gmres")  # GMRES if K is indefinite
-            ksp.solve(rhs, out)
-            if ksp.getConvergedReason() > 0:
-                if attempt:
-                    ksp.setType("cg")
-                if not own and ksp.getIterationNumber() > self.policy.tangent_lag_its:
-                    self.kept.slowed()
-                return ksp.getIterationNumber()
-        raise SolverError(f"tangent solve with K at p = {np.round(self.p, 4).tolist()} failed "
-                          f"(KSP reason {ksp.getConvergedReason()}): K is "
-                          "singular or indefinite at this equilibrium")
+        are identity), by CG on the kept factorisation, refactorised at the equilibrium
+        where it has gone stale or is far from here (`Linearisation.solve`). Returns the CG
+        iteration count."""
+        return self.linearisation.solve(rhs, out, self.p, self.u_eq, self._last_its,
+                                        self.factorise_at_equilibrium)
 
     def sensitivity(self) -> list:
         """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
@@ -132,40 +175,9 @@ class TangentSolves:
         columns (MUMPS: ~ the cost of one column); else Np tangent solves."""
         lin = self.linearisation
         if lin.sensitivities is None:
-            lin.sensitivities = self._block_sensitivity() or [self.tangent_step(e)
-                                                              for e in np.eye(self.n_params)]
+            block = lin.block_solve(self.dfdp, self.u_eq, self.factorise_at_equilibrium)
+            lin.sensitivities = block or [self.tangent_step(e) for e in np.eye(self.n_params)]
         return lin.sensitivities
-
-    def _block_sensitivity(self):
-        """dx/dp as one MatMatSolve with the factor of K at the equilibrium, or None (not a
-        Cholesky preset, no block solve in its package, or K is not positive definite
-        there)."""
-        pc = self.ksp.getPC()
-        if pc.getType() != "cholesky" or self.n_params == 0 or self.own_tangent_pc:
-            return None
-        if self.factor is not FactorState.EQUILIBRIUM:
-            self.factorise_at_equilibrium()
-            if self.factor is FactorState.SHIFTED:   # the tangent solves handle it
-                return None
-        n, N = self.u_eq.getLocalSize(), self.u_eq.getSize()
-        rhs = PETSc.Mat().createDense([(n, N), (None, self.n_params)], comm=self.domain.comm)
-        rhs.setUp()
-        rhs.getDenseArray()[:] = -np.stack([g.array_r for g in self.dfdp], axis=1)
-        rhs.assemble()
-        sol = rhs.duplicate()
-        out = []
-        try:
-            pc.getFactorMatrix().matSolve(rhs, sol)
-            cols = sol.getDenseArray()
-            for i in range(self.n_params):
-                out.append(self.u_eq.duplicate())
-                out[-1].array[:] = cols[:, i]
-        except PETSc.Error:   # a factorisation package without block solves
-            out = None
-        finally:
-            for m in (rhs, sol):
-                m.destroy()
-        return out
 
     @property
     def own_tangent_pc(self) -> bool:
