@@ -169,8 +169,7 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
             line_search=lambda x, y: self._critical_step(x, y)),
             opts.prefix, opts.solver, opts.options,
             METHOD_DEFAULTS["newton"]["max_it"] if self.method != "newton" else self.max_it)
-        self.ksp = self.snes_set.ksp
-        self.kept = KeptFactor(self.ksp, domain.comm, self.snes_set.settings, opts.prefix,
+        self.kept = KeptFactor(self.snes_set.ksp, domain.comm, self.snes_set.settings, opts.prefix,
                                opts.shift_max, self.policy)
         self.stop = StoppingTest(self.forms.uvec, self.policy, self.kept)
         self._w, self._r = self._x.duplicate(), self.forms.b.duplicate()   # line-search trial

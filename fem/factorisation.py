@@ -318,6 +318,11 @@ class Factorisation:
         return {"newton": self.snes_set.newton, "qn": self.snes_set.qn}
 
     @property
+    def ksp(self) -> PETSc.KSP:
+        """The KSP every solve shares (Newton's; its PC is the kept factorisation)."""
+        return self.snes_set.ksp
+
+    @property
     def solver_name(self) -> str:
         """The linear solver preset (a `PRESETS` key)."""
         return self.snes_set.solver
@@ -335,8 +340,7 @@ class Factorisation:
         (`KeptFactor.serves`: unshifted, the last solve within ``lag_its`` iterations);
         Newton with ``lag_its`` > 0 keeps it as CG's preconditioner while it serves."""
         kept = self.kept
-        if snes is not None and snes.getType() == "qn" and kept.serves(self._last_its,
-                                                                       self.lag_its, True):
+        if snes.getType() == "qn" and kept.serves(self._last_its, self.lag_its, True):
             self._stats.lagged += 1
             return
         # K at the equilibrium: assembled once, copied (MatCopy into a matrix never

@@ -154,7 +154,7 @@ def test_evaluations_elsewhere_restore_the_fields(forms, rng):
         if a is not None:
             np.testing.assert_array_equal(a, b)
     crushed = forms.uvec.duplicate()
-    crushed.array[:] = -3 * np.tile(forms.domain.X[:forms.domain.n_owned], 1).ravel()
+    crushed.array[:] = -3 * forms.domain.X[:forms.domain.n_owned].ravel()
     assert not forms.sound(crushed) and forms.energy(crushed) == np.inf
     for v in (other, crushed):
         v.destroy()
