@@ -117,7 +117,7 @@ def scene_parser(doc: str, plan: bool = False, params: str | None = None):
     add_scene_args(ap, plan)
     if params:
         ap.add_argument("--params", help=f"JSON file {{name: value}}: {params}")
-        ap.add_argument("--p", nargs="*", default=[], metavar="NAME=VALUE",
+        ap.add_argument("--p", nargs="*", action="extend", default=[], metavar="NAME=VALUE",
                         help=f"{params} (override --params)")
     return ap
 

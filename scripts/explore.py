@@ -34,7 +34,7 @@ from scripts._common import (  # noqa: E402
 
 def main(argv=None):
     ap = scene_parser(__doc__, params="the equilibrium p0 to explore at")
-    ap.add_argument("--dp", nargs="*", default=[], metavar="NAME=VALUE",
+    ap.add_argument("--dp", nargs="*", action="extend", default=[], metavar="NAME=VALUE",
                     help="a change of the treatment to predict")
     ap.add_argument("--scales", default="1", help="comma-separated multiples of dp")
     ap.add_argument("--iterations", default=None,
