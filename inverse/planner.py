@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from fem.limits import XTOL_FLOOR_MM, check
-from inverse.objective import Objective
+from inverse.objective import HEAD_AXES, Objective
 from inverse.treatment import FTOL
 from meshes.errors import InputError, SolverError
 
@@ -196,7 +196,7 @@ def _gauss_newton(scene, objective, p0, bounds, opts: PlanOptions, callback):
     if eq.xtol < eq.solved_xtol:   # the start to the plan's accuracy
         its += forward(p, "forward")
     T = T0 = objective.value()
-    w3 = np.repeat(objective.weights, 3)
+    w3 = objective.weights.ravel()
     history = [dict(iteration=0, T=T, mean_distance_mm=float(objective.distances().mean()),
                     params=p.copy(), step=0.0, alpha=0.0, mu=mu, iterations=its,
                     forward_solves=forward_solves, time_s=time.perf_counter() - t_start)]
@@ -271,24 +271,22 @@ def _gauss_newton(scene, objective, p0, bounds, opts: PlanOptions, callback):
                       timings)
 
 
-#: The head frame's axes (`meshes.frame`), as a plan report names them.
-HEAD_AXES = ("left", "anterior", "superior")
-
-
-def plan_report(scene, result: PlanResult, targets: dict, before: dict) -> dict:
-    """The JSON report of a plan (docs/planning.md): the landmark table (``targets`` and
-    ``before`` {name: (3,)} mm; ``offset_after_mm``: where each landmark ends from its
-    target along the head frame's axes), parameters, history, timings and the bone
+def plan_report(scene, result: PlanResult, objective, before: dict) -> dict:
+    """The JSON report of a plan (docs/planning.md): the landmark table (``objective``'s
+    targets, ``before`` {name: (3,)} mm; ``along``: the head axes along which the target
+    holds the landmark, over which both distances are taken; ``offset_after_mm``: where it
+    ends from its target along every head axis), parameters, history, timings and the bone
     motions."""
-    after = scene.landmarks(list(targets))
-    axes = scene.head_frame.rotation   # columns: left, anterior, superior (scene frame)
+    after = scene.landmarks(objective.names)
+    axes = objective.axes   # columns: left, anterior, superior (scene frame)
     table = {}
-    for n, t in targets.items():
-        t = np.asarray(t, dtype=float)
-        table[n] = {"target": t, "before": before[n], "after": after[n],
-                    "distance_before_mm": float(np.linalg.norm(before[n] - t)),
-                    "distance_after_mm": float(np.linalg.norm(after[n] - t)),
-                    "offset_after_mm": dict(zip(HEAD_AXES, ((after[n] - t) @ axes).tolist()))}
+    for n, t, held in zip(objective.names, objective.targets, objective.held):
+        off = lambda x: (x - t) @ axes   # noqa: E731
+        table[n] = {"target": t, "along": [a for a, h in zip(HEAD_AXES, held) if h],
+                    "before": before[n], "after": after[n],
+                    "distance_before_mm": float(np.linalg.norm(off(before[n])[held])),
+                    "distance_after_mm": float(np.linalg.norm(off(after[n])[held])),
+                    "offset_after_mm": dict(zip(HEAD_AXES, off(after[n]).tolist()))}
     mean = lambda k: sum(v[k] for v in table.values()) / len(table)  # noqa: E731
     return {
         "case": scene.case or scene.domain.name, "resolution": scene.resolution,

@@ -218,23 +218,25 @@ class Scene:
         """`inverse.objective.Objective` for landmark targets.
 
         Args:
-            targets: JSON path or ``{name: [x, y, z]}`` (mm); ``landmarks``: optional subset
-                of its names; weights: ``{name: w}`` or (Nt,); tikhonov: α (mm² per unit²).
+            targets: JSON path or ``{name: entry}`` (`inverse.objective.load_targets`: a
+                point in mm, or a point held along some of the head frame's axes);
+                ``landmarks``: optional subset of its names; weights: ``{name: w}`` or (Nt,);
+                tikhonov: α (mm² per unit²).
         """
         from inverse.objective import Objective, load_targets
 
-        names, pts = load_targets(targets, self.landmarks(rest=True), landmarks)
+        names, pts, held = load_targets(targets, self.landmarks(rest=True), landmarks)
         if isinstance(weights, dict):
             bad = [n for n in weights if n not in names]
             if bad:
                 raise InputError(f"weights for landmark(s) {bad} that have no target")
             weights = [float(weights.get(n, 1.0)) for n in names]
         return Objective(self.eq, self.domain.point_operator(names), pts, weights, tikhonov,
-                         names)
+                         names, self.head_frame.rotation, held)
 
     def default_targets(self, goal: str | None = None) -> dict:
-        """A built-in treatment goal ``{name: [x, y, z]}`` (`inverse.targets`): ``goal``, or
-        by default the case's."""
+        """A built-in treatment goal ``{name: entry}`` (`inverse.targets`): ``goal``, or by
+        default the case's."""
         from inverse.targets import default_targets
 
         return default_targets(goal or self.case, self.landmarks(rest=True),

@@ -39,20 +39,23 @@ def _finite_number(name: str, value) -> float:
 
 
 def check_targets(rest: dict, targets) -> dict:
-    """{landmark: [x, y, z]} from a request or a file: an object of known landmarks (``rest``
-    {name: (3,)} mm), finite 3-vectors in mm near the face (`inverse.objective.load_targets`);
-    `InputError` otherwise. Local: no communication."""
-    from inverse.objective import load_targets
+    """``{landmark: entry}`` from a request or a file: an object of known landmarks (``rest``
+    {name: (3,)} mm), each a finite 3-vector in mm near the face, or one held along some
+    head axes (`inverse.objective.load_targets`), as `inverse.objective.target_entry` writes
+    it; `InputError` otherwise. Local: no communication."""
+    from inverse.objective import HEAD_AXES, load_targets, target_entry
 
     if not isinstance(targets, dict) or not targets:
         raise InputError("'targets' must be an object {landmark: [x, y, z]} mm")
     for n, x in targets.items():
-        if not isinstance(x, list) or len(x) != 3:
+        point = x.get("at") if isinstance(x, dict) else x
+        if not isinstance(point, list) or len(point) != 3:
             raise InputError(f"target {n} must be [x, y, z] in mm, got {x!r}")
-        for c in x:
+        for c in point:
             _finite_number(f"target {n}", c)
-    names, pts = load_targets(targets, rest)
-    return dict(zip(names, pts.tolist()))
+    names, pts, held = load_targets(targets, rest)
+    return {n: target_entry(x, [a for a, h in zip(HEAD_AXES, hs) if h])
+            for n, x, hs in zip(names, pts, held)}
 
 
 class Session:
@@ -63,8 +66,8 @@ class Session:
         make_scene: ``make_scene(occlusion) -> Scene``, called when a plan asks for the other
             occlusion (None: such a plan is refused).
         p0: (Np,) start equilibrium (default 0).
-        targets: {landmark: [x, y, z]} mm shown and planned to (default: the case's goal,
-            none for an external mesh).
+        targets: {landmark: entry} (`check_targets`) shown and planned to (default: the
+            case's goal, none for an external mesh).
     """
 
     def __init__(self, scene, make_scene=None, p0=None, targets=None, validation=None):
@@ -72,8 +75,8 @@ class Session:
         self.occlusion = "free" if scene.treatment.occlusion is None else "final"
         self._make_scene, self.scenes = make_scene, {self.occlusion: scene}
         self.rest_landmarks = scene.landmarks(rest=True)   # the same in every scene
-        if targets is None and scene.case is not None:   # (3,) arrays: as JSON lists
-            targets = {n: np.asarray(x).tolist() for n, x in scene.default_targets().items()}
+        if targets is None and scene.case is not None:
+            targets = scene.default_targets()
         self.targets = None if targets is None else check_targets(self.rest_landmarks,
                                                                   targets)
         self.pred = None
@@ -206,7 +209,7 @@ class Session:
 
     def plan(self, targets: dict, occlusion: str, progress=None, tikhonov: float = TIKHONOV,
              ftol: float = FTOL, max_iterations: int = 20) -> dict:
-        """Plan from the current p0 to ``targets`` (validated, {name: [x, y, z]} mm) with
+        """Plan from the current p0 to ``targets`` (validated, `check_targets`) with
         the occlusion "final" (jaws.* motions) or "free" (`PLAN_PARAMS`), then re-linearise
         at the plan. A plan in the other occlusion starts from the parameters that reach p0's
         bone motions there where they can (otherwise from 0). ``progress(entry)`` gets each
@@ -244,8 +247,8 @@ class Session:
         except BaseException:
             self.occlusion = old   # the predictor's scene
             raise
-        report = plan_report(scene, result, targets, before)
-        self.targets = {n: list(x) for n, x in targets.items()}
+        report = plan_report(scene, result, obj, before)
+        self.targets = obj.entries()
         self.relinearise(result.params)
         report["seconds"] = time.perf_counter() - t
         return report

@@ -19,12 +19,16 @@ points ``{name: (3,)}``; `default_targets` maps a scene's points in and out.
   and the tragion line T_L-T_R is levelled (both at their mean height).
 * `keep` - the named landmarks stay where they are (e.g. Sn: do not advance the nose base).
 * `midface_advance` - a retruded midface brought forward by a LeFort I: subnasale Sn
-  `MIDFACE_ADVANCE_MM` anterior at its height (mild maxillary hypoplasia is corrected by
-  3-6 mm of advance, and Sn follows the bone at 0.5-0.9, San Miguel Moragas et al. 2014).
-  The nasal tip is left free: the plan must not steer the maxilla by the nose, whose
-  elevation the model overestimates (BENCHMARKS.md, ct; so does Sn's, which is why
-  `make demo` plans the advance alone). For scenes with a midface and no
-  mandible, such as Debian's Cranium CT (`make demo`).
+  `MIDFACE_ADVANCE_MM` anterior, held along the anterior axis only, as the true vertical
+  line measures it (mild maxillary hypoplasia is corrected by 3-6 mm of advance, and Sn
+  follows the bone at 0.5-0.9, San Miguel Moragas et al. 2014). Sn's height and the nasal
+  tip are left free: the plan must not steer the maxilla by the nose, whose elevation the
+  model overestimates (BENCHMARKS.md, ct; so does Sn's, which is why `make demo` plans the
+  advance alone). For scenes with a midface and no mandible, such as Debian's Cranium CT
+  (`make demo`).
+
+A rule's target is a head-frame point, held along every axis, or ``{"at": point, "along":
+[axis, ...]}`` held along the named axes only (`inverse.objective.load_targets`).
 
 `DEFAULT_GOALS` composes them per case: class2 uses 3 landmarks, class3-asym 7 (paper 3.2);
 ``midface-advance`` and ``e-line`` are goals by name (``plan.py --goal``).
@@ -106,10 +110,12 @@ MIDFACE_ADVANCE_MM = 3.0
 
 
 def midface_advance(rest: dict) -> dict:
-    """Sn `MIDFACE_ADVANCE_MM` anterior (y only)."""
+    """Sn `MIDFACE_ADVANCE_MM` anterior, held along the anterior axis only: its height is
+    the surgeon's other choice (a target at rest height asks the LeFort I to hold Sn's
+    elevation, which the model overestimates, and stops the advance short)."""
     sn = np.array(rest["Sn"], dtype=float)
     sn[1] += MIDFACE_ADVANCE_MM
-    return {"Sn": sn}
+    return {"Sn": {"at": sn, "along": ["anterior"]}}
 
 
 DEFAULT_GOALS = {
@@ -127,7 +133,8 @@ GOAL_LANDMARKS = {"midface-advance": ("Sn",), "e-line": ("Prn", "Pg", "Ls", "Li"
 
 def default_targets(case: str, rest: dict, frame=None) -> dict:
     """A built-in treatment goal (a case's, or a named one of `DEFAULT_GOALS`),
-    ``{name: [x, y, z]}`` mm in the scene's frame, from rest landmarks in it; the rules
+    ``{name: entry}`` in the scene's frame (`inverse.objective.load_targets`: ``[x, y, z]``
+    mm, or ``{"at": [x, y, z], "along": [axis, ...]}``), from rest landmarks in it; the rules
     apply in the head frame ``frame`` (`meshes.frame.HeadFrame`; None: the scene's frame is
     the head's)."""
     if case not in DEFAULT_GOALS:
@@ -140,4 +147,9 @@ def default_targets(case: str, rest: dict, frame=None) -> dict:
 
     frame = frame or HeadFrame.identity()
     head = {n: frame.to_head(x) for n, x in rest.items()}
-    return {n: frame.to_scene(x).tolist() for n, x in DEFAULT_GOALS[case](head).items()}
+    out = {}
+    for n, x in DEFAULT_GOALS[case](head).items():
+        held = isinstance(x, dict)
+        point = frame.to_scene(x["at"] if held else x).tolist()
+        out[n] = {"at": point, "along": list(x["along"])} if held else point
+    return out

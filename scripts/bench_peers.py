@@ -96,7 +96,7 @@ def _lm(scene, obj):
     eq.set_xtol(LM_XTOL)
     lo, hi = scene.treatment.bounds.T
     a = np.sqrt(obj.tikhonov)
-    w = np.sqrt(np.repeat(obj.weights, 3))
+    w = np.sqrt(obj.weights.ravel())
 
     def resid(q):
         scene.solve(q)

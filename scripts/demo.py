@@ -4,11 +4,11 @@
 1. **A real face**: Debian's Cranium CT (invesalius-examples, an upper face to the
    maxillary teeth), CT to scene at paper size (``ct_scene.py``, cached after the first
    run), then a LeFort I plan (``plan.py --goal midface-advance``): the advance that brings
-   subnasale 3 mm forward (`inverse.targets.midface_advance`), in the head frame estimated
-   on the CT. Writes ``out/demo/cranium/``. The plan moves the maxilla along the face's
-   anterior axis only: the model lifts the subnasal tissue 0.4 mm per mm advanced
-   (BENCHMARKS.md, ct; published: little), and a plan free to move the maxilla vertically
-   answers that by impacting it as much as it advances it.
+   subnasale 3 mm forward (`inverse.targets.midface_advance`, held along the anterior axis
+   only, its height free), in the head frame estimated on the CT. Writes
+   ``out/demo/cranium/``. The plan moves the maxilla along the face's anterior axis only,
+   and the model lifts the subnasal tissue 0.4 mm per mm advanced (BENCHMARKS.md, ct;
+   published: little).
 2. **The synthetic class III face**, the chin deviated to the right: the paper's story, a
    Sparse Gauss-Newton plan to its clinical goal (Arnett's true vertical line through Sn, the
    chin and lips on the mid-sagittal plane, Sn and tragion kept), the mandible held to the

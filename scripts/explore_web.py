@@ -49,8 +49,8 @@ def main(argv=None):
                     "parameters (its case, resolution and occlusion unless given)")
     ap.add_argument("--validation", help="a validate.py report: explore at its movements "
                     "(its scene unless given) and show its distance map")
-    ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm shown and planned to "
-                    "(default: the plan report's, or the case's clinical goal)")
+    ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm shown and planned to, "
+                    "as plan.py's (default: the plan report's, or the case's clinical goal)")
     ap.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback "
                     "only)")
     ap.add_argument("--port", default=8765, help="TCP port (0: any free port)")
@@ -99,7 +99,10 @@ def main(argv=None):
     if args.targets:
         targets = read_json(args.targets, "targets file", comm)
     elif args.plan_report:
-        targets = {n: v["target"] for n, v in report.get("landmarks", {}).items()}
+        from inverse.objective import HEAD_AXES, target_entry
+
+        targets = {n: target_entry(v["target"], v.get("along", HEAD_AXES))
+                   for n, v in report.get("landmarks", {}).items()}
     session = Session(scene, make_scene, scene.param_vector(p0), targets, validation)
     if validation is not None and len(validation["signed_distance_mm"]) != len(
             session.pred.vertices):

@@ -54,8 +54,9 @@ def main(argv=None):
     from inverse.treatment import FTOL, TIKHONOV
 
     ap = scene_parser(__doc__, plan=True)
-    ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm (default: the case's "
-                    "clinical goal)")
+    ap.add_argument("--targets", help="JSON {landmark: [x, y, z]} mm, the scene's frame; an "
+                    "entry {\"at\": [x, y, z], \"along\": [\"anterior\", ...]} holds the "
+                    "landmark along those head axes only (default: the case's clinical goal)")
     ap.add_argument("--goal", help="a built-in clinical goal instead of --targets, built "
                     "on the scene's own landmarks in the head frame (inverse/targets.py): "
                     "class1, class2, class3, class3-asym, midface-advance, e-line (default: the "
@@ -88,7 +89,7 @@ def main(argv=None):
     names = names_list(args.landmarks) if args.landmarks is not None else None
     obj = scene.objective(targets, names, tikhonov=args.tikhonov)
     names = obj.names
-    targets = dict(zip(names, obj.targets.tolist()))
+    targets = obj.entries()
     before = scene.landmarks(names)
     from inverse.planner import gauss_newton, plan_report
 
@@ -121,7 +122,7 @@ def main(argv=None):
         result.gn_iterations += offset
         result.params_initial = np.asarray(state["params_initial"], dtype=float)
         before = {n: np.asarray(v, dtype=float) for n, v in state["before"].items()}
-    report = plan_report(scene, result, targets, before)
+    report = plan_report(scene, result, obj, before)
     report.update(mesh=args.mesh, goal=None if args.targets else args.goal or scene.case)
     report["resumed_from_iteration"] = offset if args.resume else None
     report["timings_s"] = dict(report["timings_s"], mesh=scene.timings["mesh"],
@@ -130,7 +131,7 @@ def main(argv=None):
         scene.write(args.out)
         write_transforms(scene.transforms(), args.out, comm)
     if args.picture:
-        _picture(scene, targets, args.picture, comm)
+        _picture(scene, dict(zip(names, obj.targets)), args.picture, comm)
     report["timings_s"]["total"] = time.perf_counter() - t0
     if args.report:
         write_json(args.report, report, comm)

@@ -41,9 +41,20 @@ def _scene(url, synthetic=True):
     return scene, S
 
 
+def _dp(scene, p: dict) -> np.ndarray:
+    """(Np,) p - p0 for the parameters ``p`` names (the others at p0)."""
+    return np.array([p.get(n, p0) - p0 for n, p0 in zip(scene["param_names"], scene["p0"])])
+
+
 def _first_order(scene, S, p: dict) -> np.ndarray:
-    dp = np.array([p.get(n, p0) - p0 for n, p0 in zip(scene["param_names"], scene["p0"])])
-    return np.asarray(scene["vertices"]) + S.astype(float) @ dp
+    return np.asarray(scene["vertices"]) + S.astype(float) @ _dp(scene, p)
+
+
+def _first_order_landmarks(scene, p: dict) -> dict:
+    """{name: (3,)} the landmarks at p to first order, from /api/scene's."""
+    S = np.asarray(scene["landmark_sensitivity"])
+    return {n: np.asarray(x) + S[i] @ _dp(scene, p)
+            for i, (n, x) in enumerate(scene["landmarks"].items())}
 
 
 @pytest.mark.parametrize("contact", ["glued", "sliding"])
@@ -224,15 +235,15 @@ def _bone_at(scene, transforms) -> np.ndarray:
 
 def _first_order_bone(scene, p: dict) -> np.ndarray:
     """The bone's vertices (B, 3) at p to first order: each segment's T0 + dT dp."""
-    b = scene["bone"]
-    dp = np.array([p.get(n, p0) - p0 for n, p0 in zip(scene["param_names"], scene["p0"])])
+    b, dp = scene["bone"], _dp(scene, p)
     return _bone_at(scene, [np.asarray(T0) + np.tensordot(dp, np.asarray(dT), axes=1)
                             for T0, dT in zip(b["transforms"], b["transform_derivatives"])])
 
 
 @pytest.fixture(scope="module")
 def cranium_scene(tmp_path_factory):
-    """Cranium.inv3 (Debian's invesalius-examples) through ct_scene.py at coarse: the mesh."""
+    """Cranium.inv3 (Debian's invesalius-examples) through ct_scene.py at coarse: the mesh
+    (its report beside it, ``ct.json``)."""
     from test_ct import CRANIUM, CT_SCENE, EXAMPLES
 
     if not CRANIUM.exists():
@@ -240,7 +251,8 @@ def cranium_scene(tmp_path_factory):
                     "installs it)")
     out = tmp_path_factory.mktemp("cranium")
     r = _run(CT_SCENE + ["--ct", str(CRANIUM), "--osteotomies", str(EXAMPLES / "cranium.json"),
-                         "--resolution", "coarse", "--out", str(out)],
+                         "--resolution", "coarse", "--out", str(out), "--report",
+                         str(out / "ct.json")],
              env=dict(os.environ, ORTHODIFF_CACHE=str(out / "cache")))
     assert r.returncode == 0, r.stderr[-2000:]
     return out / "scene.vtu"
@@ -254,14 +266,23 @@ def test_the_page_in_headless_chromium(request, tmp_path, which):
     API's); the bone toggle shows the segments moved by their first-order motion under a
     see-through skin; Solve shows the first-order error map with the API's maximum, and the
     bone by the segments' exact motions at p (the answer's); the console has no error. Saves
-    the skin and the bone (ORTHODIFF_SCREENSHOT or tmp, per scene)."""
+    the skin and the bone (ORTHODIFF_SCREENSHOT or tmp, per scene). On Cranium, with a
+    target held along the head's anterior axis only (Sn) and one held along every axis
+    (Prn), the landmark table gives each distance along the axes its target holds."""
     shot = Path(os.environ.get("ORTHODIFF_SCREENSHOT", tmp_path / "explorer.png"))
     shot = shot if which == "synthetic" else shot.with_name(f"{shot.stem}_{which}.png")
     if which == "synthetic":
         args, p = CASE, {"mandible.advance_mm": 3.0, "mandible.yaw_deg": -2.0}
     else:
-        args = ["--mesh", str(request.getfixturevalue("cranium_scene")), "--params-used",
-                "maxilla.advance_mm,maxilla.vertical_mm,maxilla.pitch_deg"]
+        mesh = request.getfixturevalue("cranium_scene")
+        ct = json.loads(mesh.with_name("ct.json").read_text())
+        anterior = np.asarray(ct["head_frame"])[:3, 1]
+        rest = {k: np.asarray(ct["landmarks"][k]) for k in ("Sn", "Prn")}
+        targets = {"Sn": {"at": (rest["Sn"] + 3 * anterior + [0, 0, 5]).tolist(),
+                          "along": ["anterior"]}, "Prn": (rest["Prn"] + [1, 1, 0]).tolist()}
+        (tmp_path / "targets.json").write_text(json.dumps(targets))
+        args = ["--mesh", str(mesh), "--targets", str(tmp_path / "targets.json"),
+                "--params-used", "maxilla.advance_mm,maxilla.vertical_mm,maxilla.pitch_deg"]
         p = {"maxilla.advance_mm": 3.0, "maxilla.pitch_deg": 2.0}
     with explorer(args) as (url, proc):
         scene, S = _scene(url, synthetic=which == "synthetic")
@@ -279,6 +300,15 @@ def test_the_page_in_headless_chromium(request, tmp_path, which):
             drawn = np.asarray(driver.execute_script(
                 "return Array.from(window.explorer.skinPositions())")).reshape(-1, 3)
             np.testing.assert_allclose(drawn, _first_order(scene, S, p), atol=1e-3)
+            if which == "cranium":
+                table = dict(tuple(row.text.split()) for row in driver.find_elements(
+                    "css selector", "#landmarks tbody tr"))
+                now = _first_order_landmarks(scene, p)
+                assert scene["targets"] == targets and set(table) == set(targets), table
+                assert float(table["Sn"]) == pytest.approx(
+                    abs((now["Sn"] - targets["Sn"]["at"]) @ anterior), abs=0.006), table
+                assert float(table["Prn"]) == pytest.approx(
+                    np.linalg.norm(now["Prn"] - targets["Prn"]), abs=0.006), table
             shot.parent.mkdir(parents=True, exist_ok=True)
             driver.save_screenshot(str(shot))
             assert driver.execute_script("return window.explorer.bonePositions()") is None

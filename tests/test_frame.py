@@ -367,6 +367,40 @@ def test_tilted_scene_plans_the_same_treatment(tilted_scenes, tmp_path):
             assert np.abs(np.subtract(off, base_off[k])).max() < 0.05, (angles, k, off)
 
 
+def test_targets_held_along_the_face_axes_recover_the_treatment(tilted_scenes, tmp_path):
+    """Targets from simulate.py at p* (a 3 mm BSSO advance, 2 mm down), held along the
+    face's axes only (Pg anterior, Me superior) and 4 mm off along the free ones, planned by
+    plan.py from 0 with α = 0: p* recovered within 0.01 mm on the untilted scene and on one
+    pitched 10 degrees, the held offsets met and the free ones left as they are."""
+    p_star = {"mandible.advance_mm": 3.0, "mandible.vertical_mm": -2.0}
+    used = ",".join(p_star)
+    for angles in (None, PITCHED[-1]):
+        mesh, M = tilted_scenes[angles]
+        left, anterior, superior = M[:3, :3].T
+        sim = tmp_path / "sim.json"
+        r = _run(SIMULATE + ["--mesh", str(mesh), "--params-used", used, "--report", str(sim),
+                             *[a for k, v in p_star.items() for a in ("--p", f"{k}={v}")]])
+        assert r.returncode == 0, r.stderr[-2000:]
+        after = {k: np.array(v) for k, v in json.loads(sim.read_text())["landmarks"].items()}
+        targets = tmp_path / "targets.json"
+        targets.write_text(json.dumps({
+            "Pg": {"at": (after["Pg"] + 4 * left + 4 * superior).tolist(), "along": ["anterior"]},
+            "Me": {"at": (after["Me"] + 4 * anterior).tolist(), "along": ["superior"]}}))
+        rep = tmp_path / "plan.json"
+        r = _run(PLAN + ["--mesh", str(mesh), "--targets", str(targets), "--params-used", used,
+                         "--tikhonov", "0", "--ftol", "1e-9", "--report", str(rep)])
+        assert r.returncode == 0, r.stderr[-2000:]
+        plan = json.loads(rep.read_text())
+        found = dict(zip(plan["param_names"], plan["params_optimal"]))
+        for k, v in p_star.items():
+            assert abs(found[k] - v) < 0.01, (angles, k, found[k])
+        pg, me = plan["landmarks"]["Pg"], plan["landmarks"]["Me"]
+        assert (pg["along"], me["along"]) == (["anterior"], ["superior"])
+        assert max(pg["distance_after_mm"], me["distance_after_mm"]) < 0.01, plan["landmarks"]
+        assert abs(pg["offset_after_mm"]["superior"] + 4) < 0.01, (angles, pg)
+        assert abs(me["offset_after_mm"]["anterior"] + 4) < 0.01, (angles, me)
+
+
 @needs_cranium
 def test_tilted_cranium_landmarks_through_ct_scene(tmp_path):
     """Cranium.inv3 pitched 8 degrees and turned 6 inside the scan (its planes tilted with

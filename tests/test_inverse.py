@@ -112,6 +112,54 @@ def test_landmark_sensitivity_matches_finite_differences(request, contact_scene,
     assert obj.jacobian()[1] == "direct"
 
 
+def _turn(pitch, roll, yaw):
+    """(3, 3) a rotation by the angles (degrees) about x, y and z."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", [pitch, roll, yaw], degrees=True).as_matrix()
+
+
+def test_targets_held_along_tilted_head_axes(scene, rng):
+    """Targets held along some axes of a tilted head frame: the adjoint gradient passes the
+    Taylor test, S_T's rows are along the head's axes in both modes and give the gradient,
+    a target moved along its free axes changes neither T nor dT/dp, and with every axis held
+    T is the scene-frame objective's (a rotation keeps distances)."""
+    from inverse.objective import Objective
+
+    names = ["Pg", "Li", "Me", "Ls"]
+    held = np.array([[0, 1, 0], [0, 1, 1], [1, 1, 1], [1, 0, 0]], bool)
+    axes = _turn(8.0, -5.0, 6.0)
+    op = scene.domain.point_operator(names)
+    rest = scene.landmarks(rest=True)
+    targets = np.array([rest[n] + [1.0, -2.0, 0.5] for n in names])
+    w = np.array([2.0, 1.0, 0.5, 1.0])
+
+    def objective(pts, held=held, axes=axes):
+        return Objective(scene.eq, op, pts, w, 0.01, names, axes, held)
+
+    obj = objective(targets)
+    scene.solve(P0)
+    g = obj.gradient()
+    d = rng.standard_normal(6)
+    rate1, rate2 = taylor_test(lambda q: _T_at(scene, obj, q), P0, d, g @ d,
+                               0.2 * 0.5 ** np.arange(4))
+    assert abs(rate1[-1] - 1) < 0.1 and np.all(np.abs(rate2 - 2) < 0.1), (rate1, rate2)
+    scene.solve(P0)
+    S_direct, S_adjoint = obj.jacobian("direct")[0], obj.jacobian("adjoint")[0]
+    assert np.abs(S_direct - S_adjoint).max() < 1e-8 * np.abs(S_direct).max()
+    gn = S_direct.T @ (obj.weights.ravel() * obj.residual().ravel()) + 0.01 * scene.eq.p
+    assert np.abs(gn - g).max() < 1e-8 * np.abs(g).max()
+    free = objective(targets + 5.0 * (~held) @ axes.T)   # 5 mm along each free axis
+    assert free.value() == pytest.approx(obj.value(), rel=1e-12)
+    assert np.abs(free.gradient() - g).max() < 1e-10 * np.abs(g).max()
+    assert np.allclose(free.distances(), obj.distances(), rtol=1e-12)
+    every = np.ones_like(held)
+    assert objective(targets, every).value() == pytest.approx(
+        objective(targets, every, np.eye(3)).value(), rel=1e-12)
+    assert obj.entries()["Pg"]["along"] == ["anterior"] and isinstance(
+        obj.entries()["Me"], list)
+
+
 @pytest.mark.skipif(MPI.COMM_WORLD.size > 1, reason="assembles the KKT system on one rank")
 def test_kkt_and_reduced_system_give_the_same_step(scene):
     """The sparse KKT system in (dx, dp, λ) and the reduced S_T system: the same dp."""
@@ -129,7 +177,7 @@ def test_kkt_and_reduced_system_give_the_same_step(scene):
                        (3 * np.repeat(op.point, 3) + np.tile([0, 1, 2], len(op.point)),
                         3 * np.repeat(op.block, 3) + np.tile([0, 1, 2], len(op.block)))),
                       shape=(3 * op.n_points, n)).tocsr()
-    w3 = np.repeat(obj.weights, 3)
+    w3 = obj.weights.ravel()
     W = sp.diags(w3)
     r = obj.residual().ravel()
     alpha = obj.tikhonov

@@ -240,12 +240,29 @@ function buildMarkers() {
     markers.add(m);
     return m;
   });
-  for (const [, x] of Object.entries(state.targets || {})) {
+  for (const [, t] of Object.entries(state.targets || {})) {
+    const x = targetPoint(t);
     const m = new THREE.Mesh(new THREE.BoxGeometry(1.6 * r, 1.6 * r, 1.6 * r), tgMat);
     m.position.set(x[0], x[1], x[2]);
     m.renderOrder = 1;
     markers.add(m);
   }
+}
+
+const HEAD_AXES = ['left', 'anterior', 'superior'];
+
+// A target entry (inverse/objective.py target_entry): [x, y, z] mm, or {at, along}.
+function targetPoint(t) {
+  return Array.isArray(t) ? t : t.at;
+}
+
+// The distance (mm) of point p from target t along the head axes the target holds.
+function targetDistance(t, p) {
+  const x = targetPoint(t);
+  const offset = new THREE.Vector3(p[0] - x[0], p[1] - x[1], p[2] - x[2]);
+  const along = Array.isArray(t) ? HEAD_AXES : t.along;
+  return Math.sqrt(HEAD_AXES.reduce((sum, a, k) =>
+    sum + (along.includes(a) ? offset.dot(headAxes[k]) ** 2 : 0), 0));
 }
 
 function updateLandmarks(points) {
@@ -254,7 +271,7 @@ function updateLandmarks(points) {
     state.lmMarkers[i].position.set(points[3 * i], points[3 * i + 1], points[3 * i + 2]);
     const t = state.targets && state.targets[n];
     if (t) {
-      const d = Math.hypot(points[3 * i] - t[0], points[3 * i + 1] - t[1], points[3 * i + 2] - t[2]);
+      const d = targetDistance(t, points.slice(3 * i, 3 * i + 3));
       rows.push(`<tr><td>${n}</td><td class="num">${d.toFixed(2)}</td></tr>`);
     }
   });
