@@ -153,8 +153,10 @@ def test_plan_default_goal_report(tmp_path):
     assert set(rep["timings_s"]) >= {"forward", "adjoint", "sensitivity", "line_search",
                                      "total"}
     assert len(rep["landmarks"]) == 7 and len(rep["history"]) == rep["gn_iterations"] + 1
-    assert set(rep["landmarks"]["Pg"]) == {"target", "before", "after", "distance_before_mm",
-                                           "distance_after_mm", "offset_after_mm"}
+    assert set(rep["landmarks"]["Pg"]) == {"target", "along", "before", "after",
+                                           "distance_before_mm", "distance_after_mm",
+                                           "offset_after_mm"}
+    assert rep["landmarks"]["Pg"]["along"] == ["left", "anterior", "superior"]
     for v in rep["landmarks"].values():   # class3-asym's frame is the identity
         off = v["offset_after_mm"]
         np.testing.assert_allclose([off["left"], off["anterior"], off["superior"]],
