@@ -83,6 +83,14 @@ class SolverPolicy:
         tangent_lag_its: a tangent (adjoint, sensitivity) solve that needs more CG
             iterations than this with the kept factorisation has the next one refactorise at
             the equilibrium.
+        sensitivity_cg_its: dx/dp where the kept factorisation is of K at an iterate near
+            the equilibrium (the solve that reached it needed at most ``tangent_lag_its``
+            iterations from it) comes from CG on all Np columns at once, preconditioned by that
+            factor, for at most this many iterations; then (or where the factor is farther)
+            K is refactorised at the equilibrium for one block solve. Cranium's LeFort I plan
+            at paper (1 rank, glued, tissues): its second and third dx/dp by block CG in 3
+            and 7 iterations, 0.8 and 1.4 s, against 3.5 and 3.6 s to refactorise; the plan
+            24.0 s against 29.9 s, the same parameters (docs/decisions.md).
         tangent_refresh_xtols: a quasi-Newton solve told that tangent solves follow, past
             ``tangent_lag_its`` iterations and within this many xtol of convergence,
             refactorises once at its iterate, so its last iterations and the tangent solves
@@ -113,6 +121,7 @@ class SolverPolicy:
     mumps_workspace_retries: int = 4
     qn_bisections: int = 3
     tangent_lag_its: int = 5
+    sensitivity_cg_its: int = 30
     tangent_refresh_xtols: float = 30.0
     path_substep_mm: float = 4.0
     path_iterations: int = 6
@@ -138,7 +147,8 @@ POLICY_RANGES = {
         "quick_refreshes": ("count", 0, 100), "quick_refresh_progress": ("above", 0.0, 1.0),
         "rate_max": ("above", 0.0, 0.99), "max_halvings": ("count", 1, 100),
         "mumps_workspace_retries": ("count", 0, 20), "qn_bisections": ("count", 0, 20),
-        "tangent_lag_its": ("count", 0, 1000), "tangent_refresh_xtols": ("above", 0.0, 1e6),
+        "tangent_lag_its": ("count", 0, 1000),
+        "sensitivity_cg_its": ("count", 0, 1000), "tangent_refresh_xtols": ("above", 0.0, 1e6),
         "path_substep_mm": ("above", 0.0, 100.0), "path_iterations": ("count", 1, 1000),
         "min_substep": ("above", 0.0, 100.0), "goal_tolerance_mm": ("above", 0.0, 100.0),
         "goal_failure_mm": ("above", 0.0, 100.0)}.items()}

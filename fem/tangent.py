@@ -1,7 +1,7 @@
 """Tangent solves at the equilibrium: the linearisation there, a part that owns it
 (`Linearisation`: K, the tangent KSP, the cached dx/dp), and K⁻¹ rhs by CG on the kept
-factorisation (refactorised when it has gone stale) and the sensitivities dx/dp (Np solves,
-cached) for adjoints and exploration (`TangentSolves`, a mixin of `Equilibrium`).
+factorisation (refactorised when it has gone stale) and the sensitivities dx/dp (all columns
+at once, cached) for adjoints and exploration (`TangentSolves`, a mixin of `Equilibrium`).
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ class Linearisation:
     linearisation`): K = df/du there (assembled once per equilibrium, `matrix`), dx/dp there
     (`sensitivities`, kept once computed) and the tangent KSP that solves with K: CG
     preconditioned by the kept factorisation's PC (``factor_pc``), or by a PC of its own
-    chosen under ``<prefix>tangent_`` (`own_pc`): `solve` and `block_solve`. `moved` forgets K
-    and dx/dp.
+    chosen under ``<prefix>tangent_`` (`own_pc`): `solve`; all columns of dx/dp at once with
+    the kept factor: `block_cg` (CG preconditioned by it) and `block_solve` (it refactorised
+    here). `moved` forgets K and dx/dp.
 
     Args:
         forms: the scene's `fem.forms.EnergyForms`; kept: the kept factorisation
@@ -124,32 +125,101 @@ class Linearisation:
         the factor of K at the equilibrium x (``refactorise()`` makes it, where it is not
         held): a list of new vectors, or None (not a Cholesky preset, no block solve in its
         package, no columns, or K not positive definite there)."""
-        pc = self.kept.ksp.getPC()
-        if pc.getType() != "cholesky" or not columns or self.own_pc:
+        if not self._blockable(columns):
             return None
         if self.kept.state is not FactorState.EQUILIBRIUM:
             refactorise()
             if self.kept.state is FactorState.SHIFTED:   # the tangent solves handle it
                 return None
-        n, N, m = x.getLocalSize(), x.getSize(), len(columns)
+        out = [x.duplicate() for _ in columns]
+        if not self._apply_factor(columns, out):
+            for v in out:
+                v.destroy()
+            return None
+        for v in out:
+            v.scale(-1.0)
+        return out
+
+    def block_cg(self, columns: list, p, x: PETSc.Vec, max_its: int):
+        """-K⁻¹ c for each PETSc vector c of ``columns``, K at the equilibrium x at p, by CG
+        on all columns at once, preconditioned by the kept factorisation as it is (of K at
+        a nearby iterate; one MatMatSolve per iteration for every column), to the tangent
+        KSP's relative residual: a list of new vectors, or None where a column needs more
+        than ``max_its`` iterations, K is not positive definite along a direction, or the
+        factorisation serves no block solve. Collective."""
+        if not self._blockable(columns):
+            return None
+        K = self.matrix(p, x)
+        rtol = self.ksp.getTolerances()[0]
+        m = len(columns)
+        X, R, Z, P, Q = ([x.duplicate() for _ in range(m)] for _ in range(5))
+        done = False
+        try:
+            for c, xi, r in zip(columns, X, R):
+                xi.set(0.0)
+                c.copy(r)
+                r.scale(-1.0)
+            goal = [rtol * r.norm() for r in R]
+            todo = [i for i in range(m) if R[i].norm() > goal[i]]
+            if todo and not self._apply_factor(R, Z):
+                return None
+            for z, pi in zip(Z, P):
+                z.copy(pi)
+            rz = [r.dot(z) for r, z in zip(R, Z)]
+            its = 0
+            while todo and its < max_its:
+                its += 1
+                for i in todo:
+                    K.mult(P[i], Q[i])
+                    pq = P[i].dot(Q[i])
+                    if not pq > 0.0:   # not positive definite along P (or NaN)
+                        return None
+                    a = rz[i] / pq
+                    X[i].axpy(a, P[i])
+                    R[i].axpy(-a, Q[i])
+                todo = [i for i in todo if R[i].norm() > goal[i]]
+                if todo:
+                    self._apply_factor([R[i] for i in todo], [Z[i] for i in todo])
+                    for i in todo:
+                        rz_new = R[i].dot(Z[i])
+                        P[i].aypx(rz_new / rz[i], Z[i])
+                        rz[i] = rz_new
+            done = not todo
+            log.debug("block CG of %d columns: %s after %d iterations", m,
+                      "converged" if done else "gave up", its)
+            return X if done else None
+        finally:
+            for v in (*R, *Z, *P, *Q, *(() if done else X)):
+                v.destroy()
+
+    def _blockable(self, columns: list) -> bool:
+        """Block solves apply the kept factor itself: a Cholesky preset, columns to solve,
+        and no preconditioner of the tangent's own."""
+        return (self.kept.ksp.getPC().getType() == "cholesky" and bool(columns)
+                and not self.own_pc)
+
+    def _apply_factor(self, vin: list, vout: list) -> bool:
+        """vout[i] = F⁻¹ vin[i] for the kept factor F, all columns in one MatMatSolve (MUMPS:
+        about the cost of one column). False where its package has no block solve."""
+        pc = self.kept.ksp.getPC()
+        x = vin[0]
+        n, N, m = x.getLocalSize(), x.getSize(), len(vin)
         rhs = PETSc.Mat().createDense([(n, N), (None, m)], comm=self.forms.domain.comm)
         rhs.setUp()
-        rhs.getDenseArray()[:] = -np.stack([c.array_r for c in columns], axis=1)
+        rhs.getDenseArray()[:] = np.stack([c.array_r for c in vin], axis=1)
         rhs.assemble()
         sol = rhs.duplicate()
-        out = []
         try:
             pc.getFactorMatrix().matSolve(rhs, sol)
             cols = sol.getDenseArray()
-            for i in range(m):
-                out.append(x.duplicate())
-                out[-1].array[:] = cols[:, i]
+            for i, v in enumerate(vout):
+                v.array[:] = cols[:, i]
+            return True
         except PETSc.Error:   # a factorisation package without block solves
-            out = None
+            return False
         finally:
             for mat in (rhs, sol):
                 mat.destroy()
-        return out
 
     def destroy(self):
         self.forget_sensitivities()
@@ -171,11 +241,21 @@ class TangentSolves:
     def sensitivity(self) -> list:
         """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
         computed on first use and cached until the equilibrium changes. With a direct
-        solver, one factorisation of K at the equilibrium and one block solve of all Np
-        columns (MUMPS: ~ the cost of one column); else Np tangent solves."""
+        solver: block CG on the kept factorisation where it is of K at an iterate near here
+        (the solve that reached it needed at most `SolverPolicy.tangent_lag_its`
+        iterations from it; `Linearisation.block_cg`, at most
+        `SolverPolicy.sensitivity_cg_its` iterations), else one factorisation of K at the
+        equilibrium and one block solve of all Np columns (MUMPS: ~ the cost of one column);
+        else Np tangent solves."""
         lin = self.linearisation
         if lin.sensitivities is None:
-            block = lin.block_solve(self.dfdp, self.u_eq, self.factorise_at_equilibrium)
+            block = None
+            if self.kept.state is FactorState.ITERATE and self.kept.serves(
+                    self._last_its, self.policy.tangent_lag_its, unshifted=True):
+                block = lin.block_cg(self.dfdp, self.p, self.u_eq,
+                                     self.policy.sensitivity_cg_its)
+            block = block or lin.block_solve(self.dfdp, self.u_eq,
+                                             self.factorise_at_equilibrium)
             lin.sensitivities = block or [self.tangent_step(e) for e in np.eye(self.n_params)]
         return lin.sensitivities
 

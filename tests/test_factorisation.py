@@ -29,9 +29,11 @@ def _made(eq) -> int:
 
 def test_states_of_a_solve_a_sensitivity_and_a_restore():
     """NONE until the first solve; a solve leaves a factorisation of K at a former
-    equilibrium (ITERATE); dx/dp refactorises once at the new one (EQUILIBRIUM), is cached,
-    and first-order steps reuse that factor; a restored equilibrium is another (ITERATE)."""
-    scene = _scene()
+    equilibrium (ITERATE); dx/dp, where that factor is too far to serve block CG (here:
+    never, `SolverPolicy.sensitivity_cg_its` = 0), refactorises once at the new one
+    (EQUILIBRIUM), is cached, and first-order steps reuse that factor; a restored
+    equilibrium is another (ITERATE)."""
+    scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, sensitivity_cg_its=0))
     eq = scene.eq
     assert eq.factor is FactorState.NONE
     base = eq.snapshot()
@@ -48,6 +50,55 @@ def test_states_of_a_solve_a_sensitivity_and_a_restore():
     eq.restore(base)
     assert eq.factor is FactorState.ITERATE
     base[1].destroy()
+    eq.destroy()
+
+
+@pytest.mark.parametrize("lag", [DEFAULT_POLICY.tangent_lag_its, 0])
+def test_sensitivity_by_block_cg_on_a_near_factorisation(lag):
+    """Where the solve that reached the equilibrium needed at most
+    `SolverPolicy.tangent_lag_its` iterations from the kept factorisation (of K at an
+    iterate near here), dx/dp comes from CG on all columns at once, preconditioned by that
+    factor: no factorisation, the factor still the iterate's, each residual |K s + df/dp|
+    within CG's 1e-11 of |df/dp| (the tangent KSP's tolerance), and the block solve's dx/dp
+    at the equilibrium within what that leaves (1e-6). A farther factor (lag 0)
+    refactorises at the equilibrium."""
+    scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, tangent_lag_its=lag))
+    eq = scene.eq
+    scene.solve([0.5, -0.8])
+    eq.factorise_at_equilibrium()
+    st = scene.solve([0.55, -0.75])   # a small step: few iterations from the kept factor
+    assert st.iterations <= DEFAULT_POLICY.tangent_lag_its and eq.factor is FactorState.ITERATE
+    made = _made(eq)
+    S = eq.sensitivity()
+    block_cg = lag > 0
+    assert _made(eq) == made + (0 if block_cg else 1)
+    assert eq.factor is (FactorState.ITERATE if block_cg else FactorState.EQUILIBRIUM)
+    K, r = eq.tangent_matrix(), S[0].duplicate()
+    for s, c in zip(S, eq.dfdp):
+        K.mult(s, r)
+        r.axpy(1.0, c)
+        assert r.norm() <= 1e-11 * c.norm(), (r.norm(), c.norm())
+    r.destroy()
+    S = [s.array.copy() for s in S]
+    eq.forget_sensitivities()
+    eq.factorise_at_equilibrium()
+    for s, e in zip(S, eq.sensitivity()):
+        np.testing.assert_allclose(s, e.array, rtol=0, atol=1e-6 * np.abs(e.array).max())
+    eq.destroy()
+
+
+def test_block_cg_that_gives_up_falls_back_to_the_factorisation():
+    """Block CG stopped after one iteration (`SolverPolicy.sensitivity_cg_its` = 1) gives
+    up; dx/dp then refactorises at the equilibrium and solves there."""
+    scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, sensitivity_cg_its=1))
+    eq = scene.eq
+    scene.solve([0.5, -0.8])
+    eq.factorise_at_equilibrium()
+    scene.solve([0.55, -0.75])
+    assert eq.factor is FactorState.ITERATE
+    made = _made(eq)
+    eq.sensitivity()
+    assert eq.factor is FactorState.EQUILIBRIUM and _made(eq) == made + 1
     eq.destroy()
 
 
@@ -74,8 +125,9 @@ def test_a_shifted_factorisation_is_not_used_as_the_equilibriums(monkeypatch):
     negative pivot), it is factorised with a diagonal shift (SHIFTED): dx/dp then comes from
     tangent solves on K itself, not the block solve; the first needs more than
     `SolverPolicy.tangent_lag_its` iterations on the shifted factor (STALE), so the next
-    refactorises (unshifted now: EQUILIBRIUM), and dx/dp equals the unshifted block solve's."""
-    scene = _scene()
+    refactorises (unshifted now: EQUILIBRIUM), and dx/dp equals the unshifted block solve's
+    (no block CG on the factor left by the solve: `SolverPolicy.sensitivity_cg_its` = 0)."""
+    scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, sensitivity_cg_its=0))
     eq = scene.eq
     scene.solve([0.5, -0.8])
     exact = [s.array.copy() for s in eq.sensitivity()]
@@ -104,7 +156,7 @@ def test_a_new_equilibrium_keeps_no_factorisation_as_its_own(method):
     scene = _scene(method=method)
     eq = scene.eq
     scene.solve([0.3, 0.0])
-    eq.sensitivity()
+    eq.factorise_at_equilibrium()
     assert eq.factor is FactorState.EQUILIBRIUM
     scene.solve([0.6, 0.2])
     assert eq.factor is FactorState.ITERATE
