@@ -88,9 +88,9 @@ class SolverPolicy:
             iterations from it) comes from CG on all Np columns at once, preconditioned by that
             factor, for at most this many iterations; then (or where the factor is farther)
             K is refactorised at the equilibrium for one block solve. Cranium's LeFort I plan
-            at paper (1 rank, glued, tissues): its second and third dx/dp by block CG in 3
-            and 7 iterations, 0.8 and 1.4 s, against 3.5 and 3.6 s to refactorise; the plan
-            24.0 s against 29.9 s, the same parameters (docs/decisions.md).
+            at paper (1 rank, glued, tissues): its second and third dx/dp by block CG in 0.8
+            and 1.4 s (3-7 iterations), against 3.5 and 3.6 s to refactorise; the plan 24.0 s
+            against 29.9 s, the same parameters (docs/decisions.md).
         tangent_refresh_xtols: a quasi-Newton solve told that tangent solves follow, past
             ``tangent_lag_its`` iterations and within this many xtol of convergence,
             refactorises once at its iterate, so its last iterations and the tangent solves
