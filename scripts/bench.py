@@ -8,7 +8,7 @@
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
     python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
     python3 scripts/bench.py plausibility [--resolutions coarse,paper] [--cases class1]
-    python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper]
+    python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper] [--ranks 2]
     python3 scripts/bench.py validation [--resolution paper] [--ranks 1,2]
     python3 scripts/bench.py explorer [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py peers [--resolutions tiny,coarse,medium,paper] [--ranks 1,2]
@@ -175,6 +175,8 @@ def main():
     c = sub.add_parser("ct", help="the CT pipeline on the example CTs, to a plan")
     c.add_argument("--cts", default="headsq,cranium")
     c.add_argument("--resolutions", default="coarse,paper")
+    c.add_argument("--ranks", type=int, default=2,
+                   help="MPI ranks of simulate.py and plan.py (issue 30's goals: 2)")
     v = sub.add_parser("validation", help="the validation protocol on Cranium, a synthetic "
                        "post-op scan")
     v.add_argument("--resolution", default="paper")

@@ -58,11 +58,16 @@ MODELS = [(c, m) for m in ("homogeneous", "tissues") for c in ("glued", "sliding
 STAGES = ("read", "frame", "segment", "mesh", "classify", "landmarks", "tissues")
 
 
-def _run(script: str, args: list, env: dict) -> dict:
+def _run(script: str, args: list, env: dict, ranks: int = 1) -> dict:
+    """``script`` with ``args`` on ``ranks`` MPI ranks: its report, or {"error": its last
+    line}."""
+    from scripts._launch import mpirun
+
     with tempfile.TemporaryDirectory() as d:
         rep = Path(d) / "r.json"
-        r = subprocess.run([sys.executable, str(ROOT / "scripts" / script), *args, "--report",
-                            str(rep)], capture_output=True, text=True, env=env)
+        r = subprocess.run([*mpirun(ranks), sys.executable, str(ROOT / "scripts" / script),
+                            *args, "--report", str(rep)], capture_output=True, text=True,
+                           env=env)
         if r.returncode != 0:
             return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
         return json.loads(rep.read_text())
@@ -100,7 +105,7 @@ def ct(args) -> None:
             env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                        ORTHODIFF_CACHE=cache)
             sim = _run("simulate.py", ["--case", REFERENCE[0], "--resolution", res, "--p",
-                                       f"{REFERENCE[1]}={MOVE_MM}"], env)
+                                       f"{REFERENCE[1]}={MOVE_MM}"], env, args.ranks)
         if "error" not in sim:
             reference[res] = (sim["n_vertices"], sim["timings_s"]["solve"])
     for name in args.cts.split(","):
@@ -140,11 +145,11 @@ def ct(args) -> None:
                 for contact, material in MODELS:
                     model = ["--contact", contact, "--material", material]
                     sim = _run("simulate.py", ["--mesh", rep["mesh"], *model,
-                                               "--p", f"{param}={MOVE_MM}"], env)
+                                               "--p", f"{param}={MOVE_MM}"], env, args.ranks)
                     plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
                                             "--landmarks", ",".join(goal_lms), *model,
                                             "--params-used", plan_params],
-                                env) if goal_lms else {"error": "none"}
+                                env, args.ranks) if goal_lms else {"error": "none"}
                     fwd = "failed" if "error" in sim else \
                         f"{sim['timings_s']['solve']:.1f} ({sim['iterations']})"
                     pl = plan.get("error", "")[:40] if "error" in plan else (
@@ -164,9 +169,10 @@ def ct(args) -> None:
                                           f"{sim['timings_s']['solve']:.1f}", f"{ref_s:.1f}",
                                           f"**{sim['timings_s']['solve'] / ref_s:.2f}**"])
                         if res == "paper":
-                            goals.append(goal(f"CT forward / synthetic forward, {name}, paper "
-                                              "(ct)", sim["timings_s"]["solve"] / ref_s, "",
-                                              limit=GOAL_CT_RATIO, source="issue 30"))
+                            goals.append(goal(
+                                f"CT forward / synthetic forward, {name}, paper, "
+                                f"{args.ranks} rank(s) (ct)", sim["timings_s"]["solve"] / ref_s,
+                                "", limit=GOAL_CT_RATIO, source="issue 30"))
                     rows.append([name, res, f"{rep['n_vertices']}", f"{rep['n_cells']}",
                                  f"{rep['min_quality']:.3f}",
                                  *(f"{t.get(k, 0.0):.1f}" for k in STAGES),
@@ -182,7 +188,8 @@ def ct(args) -> None:
                     print(rows[-1], flush=True)
     body = header("CT scenes: from a CT volume to a plan", args) + [
         "Each row: `scripts/ct_scene.py` into a fresh cache (stage times in seconds, "
-        f"goal: a paper-size scene in ≤ {GOAL_S:g} s), then `scripts/simulate.py --mesh` "
+        f"goal: a paper-size scene in ≤ {GOAL_S:g} s; 1 rank), then on {args.ranks} "
+        "rank(s) `scripts/simulate.py --mesh` "
         f"with a {MOVE_MM:g} mm advance of the moved bone (headsq: both jaws in the CT's "
         "occlusion, `jaws.advance_mm`; Cranium: the LeFort I, `maxilla.advance_mm`; seconds "
         "and iterations of the solve), then `scripts/plan.py --mesh` to the CT's goal (the "
@@ -198,7 +205,8 @@ def ct(args) -> None:
                    "contact", "material", "5 mm advance s (its)", "plan: mean distance, time",
                    "plan / forward (solves)"], rows)
     for name, r in plan_ratios.items():
-        goals.append(goal(f"plan / forward from rest, {name}, paper, worst model (ct)", r, "",
+        goals.append(goal(f"plan / forward from rest, {name}, paper, worst model, "
+                          f"{args.ranks} rank(s) (ct)", r, "",
                           limit=GOAL_PLAN_RATIO, source="issue 30"))
     body += ["", f"The same run's synthetic reference: `simulate.py --case {REFERENCE[0]}` with "
              f"`{REFERENCE[1]}={MOVE_MM:g}` (glued, homogeneous), against each CT's 5 mm "
