@@ -160,7 +160,7 @@ class Linearisation:
                 c.copy(r)
                 r.scale(-1.0)
             goal = [rtol * r.norm() for r in R]
-            todo = [i for i in range(m) if R[i].norm() > goal[i]]
+            todo = [i for i in range(m) if goal[i] > 0.0]   # a zero column is solved
             if todo and not self._apply_factor(R, Z):
                 return None
             for z, pi in zip(Z, P):
