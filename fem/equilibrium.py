@@ -20,23 +20,26 @@ factorisation per step) takes over when it fails.
 Robustness: Newton's line search backtracks on the energy, which is +inf where any
 tetrahedron has det F <= 0; quasi-Newton's steps to the critical point along its direction,
 halving a trial that inverts an element (a NaN residual). No NaN is ever taken. A step
-whose first-order start inverts an element starts where `Equilibrium.follow` gets along the
-path (secant continuation relaxed on the kept factorisation). A failed
+whose first-order start inverts an element starts where `fem.path.PathFollower.follow` gets
+along the path (secant continuation relaxed on the kept factorisation). A failed
 quasi-Newton solve first bisects the step in p (`SolverPolicy.qn_bisections`), then hands over to
 Newton; when a Newton solve fails (indefinite K, KSP or line-search failure) a diagonal
 shift is added and raised; when that fails too, the step in p is bisected (continuation).
 `Equilibrium` keeps K and its factorisation/preconditioner (``self.ksp``) for adjoint and
 sensitivity solves.
 
-The engine's parts, which own their state: `fem.forms.EnergyForms` (the energy, its forms and
-the fields they are evaluated at, ``Equilibrium.forms``), `fem.factorisation.KeptFactor`
-(what the kept factorisation holds, ``.kept``), `fem.factorisation.SnesSet` (the SNES
-objects that share it, ``.snes_set``), `fem.tangent.Linearisation` (K and dx/dp at
-the equilibrium, the tangent KSP, ``.linearisation``) and `fem.stopping.StoppingTest` (every
-SNES solve's stopping test, ``.stop``); and its rooms, mixins of `Equilibrium`, one job each:
-`fem.factorisation` (when K is assembled and refactorised), `fem.nonlinear` (the nonlinear
-strategies, `SolveStats`), `fem.path` (path following and predictions), `fem.tangent`
-(tangent and sensitivity solves). Their tuned settings are one `fem.policy.SolverPolicy`.
+The engine's parts, each owning its state, built and wired by the `Equilibrium` facade:
+`fem.forms.EnergyForms` (the energy, its forms and the fields they are evaluated at,
+``.forms``), `fem.factorisation.KeptFactor` (what the kept factorisation holds, ``.kept``),
+`fem.factorisation.SnesSet` (the SNES objects that share it, ``.snes_set``),
+`fem.stopping.StoppingTest` (every SNES solve's stopping test, ``.stop``),
+`fem.tangent.Linearisation` (K and dx/dp at the equilibrium, the tangent KSP,
+``.linearisation``), `fem.factorisation.Refactorisation` (when K is assembled and refactorised,
+``.refactorisation``), `fem.tangent.TangentSolves` (tangent and sensitivity solves,
+``.tangents``), `fem.path.PathFollower` (predictions and path following, ``.path``) and
+`fem.nonlinear.NonlinearSolver` (the nonlinear strategies, ``.solver``). They share one
+`fem.state.EquilibriumState` (the equilibrium, the settings in force, the solve's
+`SolveStats`); their tuned settings are one `fem.policy.SolverPolicy`.
 """
 
 from __future__ import annotations
@@ -45,18 +48,20 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 import contextlib
+import dataclasses
 import time
 
 import numpy as np
 
 from fem.domain import Domain
-from fem.factorisation import Factorisation, KeptFactor, SnesCallbacks, SnesSet
+from fem.factorisation import FactorState, KeptFactor, Refactorisation, SnesCallbacks, SnesSet
 from fem.forms import DEFAULT_PENALTY, EnergyForms
 from fem.limits import check
 from fem.material import HOMOGENEOUS, NeoHookean, Tissues
-from fem.nonlinear import NonlinearSolves, SolveStats
-from fem.path import PathFollowing
+from fem.nonlinear import NonlinearSolver
+from fem.path import PathFollower
 from fem.policy import METHOD_DEFAULTS, EquilibriumOptions
+from fem.state import EquilibriumState, SolveStats
 from fem.stopping import StoppingTest
 from fem.tangent import Linearisation, TangentSolves
 from meshes.errors import InputError
@@ -94,8 +99,9 @@ class LinearGoals:
         return None
 
 
-class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
-    """Owns forms, PETSc objects and the current equilibrium of one scene.
+class Equilibrium:
+    """The engine of one scene, a facade over its parts (the module docstring), which it
+    builds, wires and destroys; the public API.
 
     Args:
         domain: the distributed anatomy.
@@ -145,56 +151,213 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         if settings is not None and kw:
             raise InputError(f"give the equilibrium's options once: EquilibriumOptions or "
                              f"keywords ({sorted(kw)}), not both")
-        self.settings = opts = settings if settings is not None else EquilibriumOptions(**kw)
+        opts = settings if settings is not None else EquilibriumOptions(**kw)
         penalty = check("penalty", penalty)
         t0 = time.perf_counter()
-        self.policy = opts.policy
         self.domain, self.material, self.penalty = domain, material, penalty
-        self.method, self.xtol, self.max_it, self.lag_its = (opts.method, opts.xtol, opts.max_it,
-                                                             opts.lag_its)
-        self.frtol, self.atol = opts.frtol, opts.atol
         self.goals = goals if hasattr(goals, "goal") else LinearGoals(goals)
         self.n_params = self.goals.n_params
-        self.forms = EnergyForms(domain, self.goals, active_tags, sliding_tags, material,
-                                 penalty, opts.quadrature_degree, opts.volume_quadrature_degree)
-        self._x = self.forms.uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
-        self.shift_retry = opts.shift_retry
-        self._stats = SolveStats()
-        forms = self.forms   # late-bound callbacks: a test may replace a method
+        self.forms = forms = EnergyForms(domain, self.goals, active_tags, sliding_tags,
+                                         material, penalty, opts.quadrature_degree,
+                                         opts.volume_quadrature_degree)
+        # rest is exact where the goals at p = 0 are the rest (else, e.g. a mandible held in
+        # an occlusion, rest is no equilibrium: solved_xtol inf)
+        moved = np.abs(forms.goal.x.array).max(initial=0.0)
+        self.state = EquilibriumState(
+            settings=opts, xtol=opts.xtol, p=np.zeros(self.n_params), u_eq=forms.uvec.copy(),
+            solved_xtol=0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf)
+        # SNES callbacks, late-bound to the parts built below
         self.snes_set = SnesSet(domain.comm, forms.A, forms.b, SnesCallbacks(
             residual=lambda x, b: forms.residual(x, b), energy=lambda x: forms.energy(x),
-            jacobian=lambda snes, x, A: self._jacobian(snes, x, A),
+            jacobian=lambda snes, x, A: self.refactorisation.jacobian(snes, x, A),
             converged=lambda snes, it, norms: self.stop(snes, it, norms),
             precheck=lambda x, y: self.stop.precheck(x, y),
-            line_search=lambda x, y: self._critical_step(x, y)),
+            line_search=lambda x, y: self.solver.critical_step(x, y)),
             opts.prefix, opts.solver, opts.options,
-            METHOD_DEFAULTS["newton"]["max_it"] if self.method != "newton" else self.max_it)
-        self.kept = KeptFactor(self.snes_set.ksp, domain.comm, self.snes_set.settings, opts.prefix,
-                               opts.shift_max, self.policy)
-        self.stop = StoppingTest(self.forms.uvec, self.policy, self.kept)
-        self._w, self._r = self._x.duplicate(), self.forms.b.duplicate()   # line-search trial
-        self._last_its = 0                   # iterations of the last SNES solve
-        self.p = np.zeros(self.n_params)  # parameters of the current equilibrium
-        # the xtol it was solved to, mm: rest is exact where the goals at p = 0 are the rest
-        # (else, e.g. a mandible held in an occlusion, rest is no equilibrium: inf)
-        moved = np.abs(self.forms.goal.x.array).max(initial=0.0)
-        self.solved_xtol = 0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf
-        self.u_eq = self.forms.uvec.copy()   # its displacement; warm start of the next solve
-        self.linearisation = Linearisation(self.forms, self.kept, opts.prefix, self.policy)
+            METHOD_DEFAULTS["newton"]["max_it"] if opts.method != "newton" else opts.max_it)
+        self.kept = KeptFactor(self.snes_set.ksp, domain.comm, self.snes_set.settings,
+                               opts.prefix, opts.shift_max, opts.policy)
+        self.stop = StoppingTest(forms.uvec, opts.policy, self.kept)
+        self.linearisation = Linearisation(forms, self.kept, opts.prefix, opts.policy)
+        self.refactorisation = Refactorisation(forms, self.kept, self.snes_set,
+                                               self.linearisation, self.state)
+        self.tangents = TangentSolves(forms, self.kept, self.linearisation,
+                                      self.refactorisation, self.state)
+        self.path = PathFollower(forms, self.kept, self.snes_set, self.stop, self.tangents,
+                                 self.refactorisation, self.state)
+        self.solver = NonlinearSolver(forms, self.kept, self.snes_set, self.stop,
+                                      self.linearisation, self.refactorisation, self.path,
+                                      self.state)
         self.setup_time = time.perf_counter() - t0
+
+    # the settings in force (`EquilibriumState.settings`: replaced whole, validated)
+
+    @property
+    def settings(self) -> EquilibriumOptions:
+        """The `fem.policy.EquilibriumOptions` in force."""
+        return self.state.settings
+
+    @property
+    def policy(self):
+        """The `fem.policy.SolverPolicy` in force; set: the settings with another one."""
+        return self.state.policy
+
+    @policy.setter
+    def policy(self, policy):
+        self.state.settings = dataclasses.replace(self.state.settings, policy=policy)
+
+    @property
+    def method(self) -> str:
+        """``qn`` or ``newton``; set: the settings with the other (its iteration caps kept)."""
+        return self.state.method
+
+    @method.setter
+    def method(self, method: str):
+        self.state.settings = dataclasses.replace(self.state.settings, method=method)
+
+    @property
+    def max_it(self) -> int:
+        return self.state.settings.max_it
+
+    @property
+    def lag_its(self) -> int:
+        return self.state.settings.lag_its
+
+    @property
+    def xtol(self) -> float:
+        """The step tolerance of the next solves, mm."""
+        return self.state.xtol
 
     def set_xtol(self, xtol: float) -> None:
         """The step tolerance (mm) of the next solves, validated (`fem.limits`)."""
-        self.xtol = check("xtol", xtol)
+        self.state.xtol = check("xtol", xtol)
 
     @contextlib.contextmanager
     def keeping_xtol(self):
         """A block after which the step tolerance is back as it was (a plan tightens it)."""
-        xtol = self.xtol
+        xtol = self.state.xtol
         try:
             yield
         finally:
-            self.xtol = xtol
+            self.state.xtol = xtol
+
+    # the current equilibrium (`fem.state.EquilibriumState`)
+
+    @property
+    def p(self) -> np.ndarray:
+        """(Np,) parameters of the current equilibrium."""
+        return self.state.p
+
+    @property
+    def u_eq(self) -> PETSc.Vec:
+        """Its displacement, mm (the warm start of the next solve)."""
+        return self.state.u_eq
+
+    @property
+    def solved_xtol(self) -> float:
+        """The xtol it was solved to, mm (0: an exact rest; inf: none yet)."""
+        return self.state.solved_xtol
+
+    @property
+    def stats(self) -> SolveStats:
+        """What the last solve did, with the relax iterations of corrections since."""
+        return self.state.stats
+
+    # solves (`fem.nonlinear.NonlinearSolver`, `fem.path.PathFollower`)
+
+    def solve(self, p, max_bisections: int = 6, predict: bool = True, quick: bool = False,
+              tangent: bool = False, start: PETSc.Vec | None = None) -> SolveStats:
+        """The equilibrium at p (Np,): `fem.nonlinear.NonlinearSolver.solve`."""
+        return self.solver.solve(p, max_bisections, predict, quick, tangent, start)
+
+    def snapshot(self):
+        """(p, u, solved_xtol) of the current equilibrium, for `restore`."""
+        return self.solver.snapshot()
+
+    def restore(self, snap):
+        """Return to an equilibrium saved by `snapshot` (no solve)."""
+        self.solver.restore(snap)
+
+    def first_order(self, p, follow: bool = False):
+        """x(p0) + dx/dp (p - p0), or None: `fem.path.PathFollower.first_order`."""
+        return self.path.first_order(p, follow)
+
+    def follow(self, p0, x0: PETSc.Vec, step: PETSc.Vec, p, iterations: int | None = None,
+               substep_mm: float | None = None):
+        """A state near the equilibrium at p by continuation: `fem.path.PathFollower.follow`."""
+        return self.path.follow(p0, x0, step, p, iterations, substep_mm)
+
+    def admissible(self, x0: PETSc.Vec, step: PETSc.Vec):
+        """x0 + step, or None where it inverts an element (`fem.path.PathFollower`)."""
+        return self.path.admissible(x0, step)
+
+    def relax(self, p, x: PETSc.Vec, iterations: int, resume: bool = False) -> SolveStats:
+        """Quasi-Newton steps on the kept factorisation: `fem.path.PathFollower.relax`."""
+        return self.path.relax(p, x, iterations, resume)
+
+    # tangent solves (`fem.tangent.TangentSolves`) and the kept factorisation
+
+    def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
+        """out = K⁻¹ rhs at the equilibrium; CG iterations (`fem.tangent.TangentSolves`)."""
+        return self.tangents.solve(rhs, out)
+
+    def sensitivity(self) -> list:
+        """dx/dp at the equilibrium, Np PETSc vectors, cached (`TangentSolves.sensitivity`)."""
+        return self.tangents.sensitivity()
+
+    def tangent_step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
+        """dx/dp · dp, a new PETSc vector, mm (`fem.tangent.TangentSolves.step`)."""
+        return self.tangents.step(dp, rhs)
+
+    @property
+    def has_sensitivity(self) -> bool:
+        """dx/dp is cached for the current equilibrium."""
+        return self.linearisation.sensitivities is not None
+
+    @property
+    def own_tangent_pc(self) -> bool:
+        """The tangent solves have a preconditioner of their own (`Linearisation.own_pc`)."""
+        return self.linearisation.own_pc
+
+    @property
+    def tangent_ksp(self) -> PETSc.KSP:
+        """The tangent solves' KSP (`Linearisation.ksp`), to read, not to change."""
+        return self.linearisation.ksp
+
+    def tangent_matrix(self) -> PETSc.Mat:
+        """K = df/du at the equilibrium (N×N, kPa·mm; Dirichlet rows identity), assembled
+        once per equilibrium and owned by the engine (do not destroy or change it)."""
+        return self.linearisation.matrix(self.p, self.u_eq)
+
+    def forget_sensitivities(self):
+        """Drop the cached dx/dp: its next use, or `tangent_step`'s, solves."""
+        self.linearisation.forget_sensitivities()
+
+    def factorise_at_equilibrium(self):
+        """Rebuild the kept factorisation with K at the equilibrium (tests, timing; the
+        tangent solves do so when they need to): `Refactorisation.at_equilibrium`."""
+        self.refactorisation.at_equilibrium()
+
+    @property
+    def factor(self) -> FactorState:
+        """What the kept factorisation holds (`KeptFactor.state`)."""
+        return self.kept.state
+
+    @property
+    def snes(self) -> dict:
+        """The PETSc SNES objects, ``{"newton": ..., "qn": ...}`` (the quasi-Newton one of the
+        last solve, None before one), to read their options and tolerances, not to change."""
+        return {"newton": self.snes_set.newton, "qn": self.snes_set.qn}
+
+    @property
+    def ksp(self) -> PETSc.KSP:
+        """The KSP every solve shares (Newton's; its PC is the kept factorisation)."""
+        return self.snes_set.ksp
+
+    @property
+    def solver_name(self) -> str:
+        """The linear solver preset (a `PRESETS` key)."""
+        return self.snes_set.solver
 
     # the forms' fields and evaluations (`fem.forms.EnergyForms`), as the API gives them
 
@@ -277,7 +440,7 @@ class Equilibrium(Factorisation, NonlinearSolves, PathFollowing, TangentSolves):
         return self.forms.active_goal_error()
 
     def destroy(self):
-        for obj in [self.snes_set, self.linearisation, self._x, self.stop, self._w,
-                    self._r, self.u_eq, self.forms]:
+        for obj in [self.snes_set, self.linearisation, self.solver, self.stop, self.u_eq,
+                    self.forms]:
             if obj is not None:
                 obj.destroy()

@@ -1,7 +1,7 @@
 """The kept factorisation of K: `KeptFactor`, the part that owns it (the shared KSP, MUMPS
 set-up and workspace retries, the inertia check and its diagonal shifts, its `FactorState`),
 the SNES objects that share it (`SnesSet`, a part), and when K is assembled and refactorised
-(`Factorisation`, a mixin of `Equilibrium`).
+(`Refactorisation`, a part).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ MUMPS_WORKSPACE_ERRORS = {-8, -9, -11, -12, -14, -15, -17, -20}
 class FactorState(enum.Enum):
     """What the kept factorisation (`KeptFactor`, the shared KSP's PC) holds: a
     factorisation at an iterate (`KeptFactor.factorise`) gives ITERATE, one at the
-    equilibrium (`Factorisation.factorise_at_equilibrium`, then `KeptFactor.at_equilibrium`)
+    equilibrium (`Refactorisation.at_equilibrium`, then `KeptFactor.at_equilibrium`)
     EQUILIBRIUM or SHIFTED, a new equilibrium (`KeptFactor.moved`) turns EQUILIBRIUM into
     ITERATE, and a slow tangent solve (`fem.tangent`, `KeptFactor.slowed`) gives STALE."""
 
@@ -307,65 +307,57 @@ class SnesSet:
         self.newton.destroy()
 
 
-class Factorisation:
-    """When K is assembled and the kept factorisation refactorised (mixin of
-    `fem.equilibrium.Equilibrium`)."""
+class Refactorisation:
+    """When K is assembled and the kept factorisation refactorised, a part: the SNES Jacobian
+    callback (`jacobian`), the choice of SNES for a solve (`method_snes`) and the
+    factorisation at the equilibrium itself (`at_equilibrium`).
 
-    @property
-    def snes(self) -> dict:
-        """The PETSc SNES objects, ``{"newton": ..., "qn": ...}`` (the quasi-Newton one of the
-        last solve, None before one), to read their options and tolerances, not to change."""
-        return {"newton": self.snes_set.newton, "qn": self.snes_set.qn}
+    Args:
+        forms: `fem.forms.EnergyForms`; kept: `KeptFactor`; snes_set: `SnesSet`;
+            linearisation: `fem.tangent.Linearisation` (K at the equilibrium, assembled once);
+            state: `fem.state.EquilibriumState` (the equilibrium, settings, stats).
+    """
 
-    @property
-    def ksp(self) -> PETSc.KSP:
-        """The KSP every solve shares (Newton's; its PC is the kept factorisation)."""
-        return self.snes_set.ksp
+    def __init__(self, forms, kept: KeptFactor, snes_set: SnesSet, linearisation, state):
+        self.forms, self.kept, self.snes_set = forms, kept, snes_set
+        self.linearisation, self.state = linearisation, state
 
-    @property
-    def solver_name(self) -> str:
-        """The linear solver preset (a `PRESETS` key)."""
-        return self.snes_set.solver
-
-    def _method_snes(self):
+    def method_snes(self):
         """The SNES for the next solve: Newton when asked for, or when xtol is below
         `SolverPolicy.qn_min_xtol`; else a fresh quasi-Newton one (`SnesSet.method`)."""
+        st = self.state
         return self.snes_set.method(
-            self.method == "newton" or self.xtol < self.policy.qn_min_xtol, self.max_it)
+            st.method == "newton" or st.xtol < st.policy.qn_min_xtol, st.settings.max_it)
 
-    def _jacobian(self, snes, x, A):
+    def jacobian(self, snes, x, A):
         """Assemble K at x plus the current diagonal shift. With a direct LDL^T solver the
         inertia is checked right after factorisation, and the shift raised until K is PD.
         Quasi-Newton keeps the last factorisation (nothing assembled) while it serves
         (`KeptFactor.serves`: unshifted, the last solve within ``lag_its`` iterations);
         Newton with ``lag_its`` > 0 keeps it as CG's preconditioner while it serves."""
-        kept = self.kept
-        if snes.getType() == "qn" and kept.serves(self._last_its, self.lag_its, True):
-            self._stats.lagged += 1
+        kept, st = self.kept, self.state
+        lag_its = st.settings.lag_its
+        if snes.getType() == "qn" and kept.serves(st.last_its, lag_its, True):
+            st.stats.lagged += 1
             return
         # K at the equilibrium: assembled once, copied (MatCopy into a matrix never
         # assembled leaves it flagged unassembled: the first one is assembled)
-        at_eq = x is self.u_eq   # K at the equilibrium: its p's normals, not the goals set
+        at_eq = x is st.u_eq   # K at the equilibrium: its p's normals, not the goals set
         if at_eq and A.assembled:
-            self.linearisation.matrix(self.p, self.u_eq).copy(
+            self.linearisation.matrix(st.p, st.u_eq).copy(
                 A, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
-            self.forms.jacobian(x, A, turns_at=self.p if at_eq else None)
-        kept.factorise(A, self._stats, reuse=self.method == "newton" and self.lag_its > 0 and
-                       kept.serves(self.ksp.getIterationNumber(), self.lag_its))
+            self.forms.jacobian(x, A, turns_at=st.p if at_eq else None)
+        kept.factorise(A, st.stats, reuse=st.method == "newton" and lag_its > 0 and
+                       kept.serves(self.snes_set.ksp.getIterationNumber(), lag_its))
 
-    def factorise_at_equilibrium(self):
+    def at_equilibrium(self):
         """Rebuild the kept factorisation (or preconditioner) with K at the equilibrium (a
-        diagonal shift only where K is not positive definite there); K is assembled once.
-        The tangent solves do so when they need to; callers force it (tests, timing)."""
+        diagonal shift only where K is not positive definite there); K is assembled once."""
+        st, ksp = self.state, self.snes_set.ksp
         self.kept.request_refactor()
-        self._jacobian(self.snes_set.newton, self.u_eq, self.A)
-        self.ksp.setOperators(self.A)
-        self.ksp.getPC().setUp()
-        self.forms.set_state(self.u_eq)
+        self.jacobian(self.snes_set.newton, st.u_eq, self.forms.A)
+        ksp.setOperators(self.forms.A)
+        ksp.getPC().setUp()
+        self.forms.set_state(st.u_eq)
         self.kept.at_equilibrium()
-
-    @property
-    def factor(self) -> FactorState:
-        """What the kept factorisation holds (`KeptFactor.state`)."""
-        return self.kept.state

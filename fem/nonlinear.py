@@ -1,57 +1,48 @@
 """The nonlinear strategies: quasi-Newton on the kept factorisation with its critical-point
 line search (the stopping test: `fem.stopping`), stall refreshes, bisection of the step in p,
-Newton taking over; `SolveStats` of each solve.
+Newton taking over (`NonlinearSolver`, a part).
 """
 
 from __future__ import annotations
 
 from petsc4py import PETSc
 
-import dataclasses
 import logging
 import time
 
 import numpy as np
 
 from fem.limits import COMPRESSION_WARN, FRTOL_FLOOR, check
+from fem.state import SolveStats
 from meshes.errors import SolverError
 
 log = logging.getLogger(__name__)
 
 
-@dataclasses.dataclass
-class SolveStats:
-    """What one equilibrium solve did. Times in seconds: ``assemble`` every assembly of the
-    energy, f and K during it (the prediction's K at the equilibrium included),
-    ``linear_solve`` the rest of ``total``, of which ``factor`` factorising. ``iterations``:
-    nonlinear iterations of whichever method ran (quasi-Newton, Newton, the path's)."""
+class NonlinearSolver:
+    """One equilibrium solve and its fallbacks, a part: `solve` (prediction, quasi-Newton,
+    bisection of the step in p, Newton with diagonal shifts), one SNES solve at a p
+    (`solve_at`), quasi-Newton's line search (`critical_step`, a SNES callback), and
+    `snapshot` / `restore` of the equilibrium. It alone moves the equilibrium
+    (``state.p``, ``u_eq``, ``solved_xtol``).
 
-    iterations: int = 0
-    shifts: list = dataclasses.field(default_factory=list)
-    continuation_steps: int = 0
-    residual_history: list = dataclasses.field(default_factory=list)
-    factorisations: int = 0
-    linear_iterations: int = 0
-    lagged: int = 0
-    assemble: float = 0.0
-    factor: float = 0.0
-    linear_solve: float = 0.0
-    total: float = 0.0
-    goal_error: float = 0.0   # max |u - B p| over active vertices, mm
-    min_det_F: float = 1.0    # smallest volume ratio J at the equilibrium
-    warnings: list = dataclasses.field(default_factory=list)   # goal error, compression
+    Args:
+        forms: `fem.forms.EnergyForms`; kept: `fem.factorisation.KeptFactor`; snes_set:
+            `fem.factorisation.SnesSet`; stop: `fem.stopping.StoppingTest`; linearisation:
+            `fem.tangent.Linearisation`; refactorisation:
+            `fem.factorisation.Refactorisation`; path: `fem.path.PathFollower`; state:
+            `fem.state.EquilibriumState`.
+    """
 
-    @property
-    def newton_iterations(self) -> int:
-        """``iterations`` (its name before it counted quasi-Newton too; kept for callers)."""
-        return self.iterations
+    def __init__(self, forms, kept, snes_set, stop, linearisation, refactorisation, path,
+                 state):
+        self.forms, self.kept, self.snes_set, self.stop = forms, kept, snes_set, stop
+        self.linearisation, self.refactorisation = linearisation, refactorisation
+        self.path, self.state = path, state
+        self._x = forms.uvec.duplicate()  # SNES iterate; callbacks copy trial points into u
+        self._w, self._r = self._x.duplicate(), forms.b.duplicate()   # line-search trial
 
-
-class NonlinearSolves:
-    """One equilibrium solve and its fallbacks (mixin of
-    `fem.equilibrium.Equilibrium`)."""
-
-    def _critical_step(self, x, y, *args):
+    def critical_step(self, x, y, *args):
         """Quasi-Newton's line search, run as the pre-check of SNES's "basic" one, which then
         takes the step x - y: y is scaled to the critical point of the energy along it, by
         one secant step on s(λ) = F(x - λy)·y between λ = 0 and a trial λ = t, the full
@@ -61,10 +52,10 @@ class NonlinearSolves:
         per iteration besides SNES's own; a step that still inverts an element fails the
         solve (a NaN residual), which falls back as any failure does."""
         self.stop.precheck(x, y)
-        s0 = self.b.dot(y)   # the SNES function vector holds F(x)
+        s0 = self.forms.b.dot(y)   # the SNES function vector holds F(x)
         t = 1.0
-        for _ in range(self.policy.max_halvings):
-            s1 = self._slope(x, y, t)
+        for _ in range(self.state.policy.max_halvings):
+            s1 = self.slope(x, y, t)
             if s1 is not None:
                 break
             t /= 2
@@ -82,12 +73,12 @@ class NonlinearSolves:
         self._w.axpy(-lam, y)
         return self._w
 
-    def _slope(self, x, y, lam: float):
+    def slope(self, x, y, lam: float):
         """F(x - λy)·y (mN·mm), or None where x - λy inverts an element (P1: the residual is
         NaN; P2 is also checked at the vertices). Collective."""
         self.forms.residual(self._trial_point(x, y, lam), self._r)
         val = self._r.dot(y)   # the same on every rank (a global dot)
-        ok = np.isfinite(val) and (self.domain.degree == 1 or self.min_det_F() > 0)
+        ok = np.isfinite(val) and (self.forms.domain.degree == 1 or self.forms.min_det_F() > 0)
         return val if ok else None
 
     def solve(self, p, max_bisections: int = 6, predict: bool = True,
@@ -114,33 +105,34 @@ class NonlinearSolves:
         ``max_bisections`` bounds all bisections. Returns `SolveStats`; raises `SolverError`
         when even continuation fails, leaving the last good equilibrium.
         """
+        st, forms = self.state, self.forms
         p = np.asarray(p, dtype=float).reshape(-1)
-        self.set_params(p)  # validates
+        forms.set_params(p)  # validates
         max_bisections = check("max_bisections", max_bisections)
-        self._stats = SolveStats()
-        quick = quick and self.method != "newton"
+        st.stats = SolveStats()
+        quick = quick and st.method != "newton"
         if quick:
             max_bisections = 0
-        if np.array_equal(p, self.p) and self.xtol >= self.solved_xtol:   # already there
-            self.forms.set_state(self.u_eq)
-            return self._stats
-        clock = (time.perf_counter(), self.forms.assemble_s)
+        if np.array_equal(p, st.p) and st.xtol >= st.solved_xtol:   # already there
+            forms.set_state(st.u_eq)
+            return st.stats
+        clock = (time.perf_counter(), forms.assemble_s)
         if start is not None:   # a copy of it where it is sound
             start = start.copy()
-            if not self.forms.sound(start):
+            if not forms.sound(start):
                 start.destroy()
                 start = None
-            self.forms.set_state(self.u_eq)
+            forms.set_state(st.u_eq)
         if start is None:
-            start = self.first_order(p, follow=not quick) if predict else None
-        if quick and start is None and predict and self._can_predict(p):
-            self.set_params(self.p)   # the scene stays at its equilibrium
-            self.forms.set_state(self.u_eq)
+            start = self.path.first_order(p, follow=not quick) if predict else None
+        if quick and start is None and predict and self.path.can_predict(p):
+            forms.set_params(st.p)   # the scene stays at its equilibrium
+            forms.set_state(st.u_eq)
             raise SolverError(f"the first-order prediction at p = {np.round(p, 4).tolist()} "
                               "inverts an element: no quick solve is tried")
-        p_done, p_start = self.p.copy(), self.p.copy()
-        u_good = self.u_eq.copy()   # self.u may have been changed by the caller
-        self.forms.set_state(start or u_good)
+        p_done, p_start = st.p.copy(), st.p.copy()
+        u_good = st.u_eq.copy()   # u may have been changed by the caller
+        forms.set_state(start or u_good)
         if start is not None:
             start.destroy()
         todo = [p]
@@ -148,11 +140,11 @@ class NonlinearSolves:
         while todo:
             p_next = todo[-1]
             try:
-                self._newton(p_next, p_done, quick,
-                             qn_only=quick or depth < self.policy.qn_bisections,
-                             tangent=tangent and len(todo) == 1)   # at p itself only
+                self.solve_at(p_next, p_done, quick,
+                              qn_only=quick or depth < st.policy.qn_bisections,
+                              tangent=tangent and len(todo) == 1)   # at p itself only
             except SolverError:
-                self.forms.set_state(u_good)
+                forms.set_state(u_good)
                 depth += 1
                 if depth > max_bisections:   # keep the largest step reached
                     self._commit(p_done, clock, moved=not np.array_equal(p_done, p_start))
@@ -162,12 +154,12 @@ class NonlinearSolves:
                         f"{max_bisections} bisections; the largest step reached is p = "
                         f"{np.round(p_done, 4).tolist()}, where the scene is left") from None
                 todo.append(0.5 * (p_done + p_next))
-                self._stats.continuation_steps += 1
+                st.stats.continuation_steps += 1
                 log.info("continuation: bisecting to p = %s", todo[-1])
                 continue
             todo.pop()
             p_done = p_next
-            self.forms.uvec.copy(u_good)
+            forms.uvec.copy(u_good)
         u_good.destroy()
         return self._commit(p_done, clock)
 
@@ -176,19 +168,20 @@ class NonlinearSolves:
         solve's start, and the forms' assembly seconds then); report a goal the tissue did
         not let the bone reach. ``moved=False`` (a failed solve that made no step): the
         equilibrium, its accuracy, K and dx/dp there are kept."""
-        self.set_params(p)
-        self.p = p.copy()
-        self.forms.uvec.copy(self.u_eq)
+        state, forms, policy = self.state, self.forms, self.state.policy
+        forms.set_params(p)
+        state.p = p.copy()
+        forms.uvec.copy(state.u_eq)
         if moved:
-            self.solved_xtol = self.xtol
+            state.solved_xtol = state.xtol
             self.linearisation.moved()
             self.kept.moved()
-        st = self._stats
-        st.goal_error, st.min_det_F = self.active_goal_error(), self.min_det_F()
-        if st.goal_error > self.policy.goal_tolerance_mm:
+        st = state.stats
+        st.goal_error, st.min_det_F = forms.active_goal_error(), forms.min_det_F()
+        if st.goal_error > policy.goal_tolerance_mm:
             st.warnings.append(
                 f"active vertices end {st.goal_error:.3f} mm from their goals (> "
-                f"{self.policy.goal_tolerance_mm:g} mm) at p = {np.round(p, 3).tolist()}: the "
+                f"{policy.goal_tolerance_mm:g} mm) at p = {np.round(p, 3).tolist()}: the "
                 "tissue resists "
                 f"(min det F = {st.min_det_F:.2g}) or the penalty k is too soft")
         if st.min_det_F < COMPRESSION_WARN:
@@ -196,17 +189,17 @@ class NonlinearSolves:
                 f"tissue compressed to {100 * st.min_det_F:.0f} % of its volume (min det F "
                 f"{st.min_det_F:.2f} < {COMPRESSION_WARN:g}): the treatment is beyond what the "
                 "soft tissue plausibly follows")
-        if self.domain.comm.rank == 0:
+        if forms.domain.comm.rank == 0:
             for w in st.warnings:
                 log.warning(w)
         st.total = time.perf_counter() - clock[0]
-        st.assemble = self.forms.assemble_s - clock[1]
+        st.assemble = forms.assemble_s - clock[1]
         st.linear_solve = max(st.total - st.assemble, 0.0)
-        self._stats = SolveStats()   # later tangent work must not change what was returned
+        state.stats = SolveStats()   # later tangent work must not change what was returned
         return st
 
-    def _newton(self, p, p_from, quick: bool = False, qn_only: bool = False,
-                tangent: bool = False):
+    def solve_at(self, p, p_from, quick: bool = False, qn_only: bool = False,
+                 tangent: bool = False):
         """One SNES solve at p from the equilibrium at p_from (or a prediction of it). When
         quasi-Newton fails and ``qn_only``, `SolverError` (the caller bisects the step);
         else Newton goes on from its iterate where that is sound (finite, nothing inverted,
@@ -216,17 +209,18 @@ class NonlinearSolves:
         least `fem.limits.FRTOL_FLOOR` of the goals' whole load |df/dg g(p)| (a tiny step
         cannot ask for a residual below roundoff); with no load (a refinement) only the step
         counts. ``tangent``: arm the stopping test's tangent refresh (`solve`)."""
-        self.set_params(p)
+        st, forms = self.state, self.forms
+        forms.set_params(p)
         self.kept.set_shift(0.0)
-        load = self.load(p - p_from)
+        load = forms.load(p - p_from, st.p, st.u_eq)
         # |df/dg g(p)|: a scale (sliding: df/dg of the last p0). No load: refining the
         # current equilibrium to a tighter xtol, where only steps count
-        f_ref = max(load.norm(), FRTOL_FLOOR / self.frtol * self.forms.goal_load_norm()) \
-            or np.inf
-        self.stop.start(self.xtol, self.frtol, self.atol, self._stats.residual_history, f_ref,
+        frtol = st.settings.frtol
+        f_ref = max(load.norm(), FRTOL_FLOOR / frtol * forms.goal_load_norm()) or np.inf
+        self.stop.start(st.xtol, frtol, st.settings.atol, st.stats.residual_history, f_ref,
                         tangent)
         load.destroy()
-        self.forms.uvec.copy(self._x)
+        forms.uvec.copy(self._x)
         start = self._x.copy()
         try:
             self._iterate(p, start, quick, qn_only)
@@ -235,80 +229,82 @@ class NonlinearSolves:
             self.kept.set_shift(0.0)
 
     def _iterate(self, p, start, quick: bool, qn_only: bool):
-        """The SNES solves of `_newton`, from ``start`` (in ``self._x``); raises
+        """The SNES solves of `solve_at`, from ``start`` (in ``self._x``); raises
         `SolverError` when Newton fails even with the largest retry shift, or when
         quasi-Newton fails and ``qn_only``. ``quick``: at most
         `SolverPolicy.quick_refreshes` stall refreshes."""
+        st, forms, policy, kept = self.state, self.forms, self.state.policy, self.kept
         self.snes_set.drop_relaxation()   # a path's relax() pairs do not outlive its solve
-        snes = self._method_snes()
+        snes = self.refactorisation.method_snes()
         shift = 0.0   # the Jacobian callback lets kept.shift decay; this one only grows
         refreshes, f_start = 0, None   # f_start: the residual norm at the start
         while True:
             self.stop.run(snes, self._x)
             reason = snes.getConvergedReason()
-            self._last_its = snes.getIterationNumber()
-            self._stats.iterations += self._last_its
-            self._stats.linear_iterations += snes.getLinearSolveIterations()
-            self.forms.set_state(self._x)
+            st.last_its = snes.getIterationNumber()
+            st.stats.iterations += st.last_its
+            st.stats.linear_iterations += snes.getLinearSolveIterations()
+            forms.set_state(self._x)
             crushed = False
-            if reason > 0 and self.forms.finite(self._x):
-                gap = self.active_goal_error()
-                if gap <= self.policy.goal_failure_mm:
+            if reason > 0 and forms.finite(self._x):
+                gap = forms.active_goal_error()
+                if gap <= policy.goal_failure_mm:
                     return
                 crushed = True
                 if snes is self.snes_set.newton:
                     raise SolverError(f"at p = {np.round(p, 4).tolist()} the bone stays "
                                       f"{gap:.1f} mm from its goal (tissue crushed, min det F "
-                                      f"= {self.min_det_F():.1e})")
-            self.kept.request_refactor()
+                                      f"= {forms.min_det_F():.1e})")
+            kept.request_refactor()
             why = self.stop.refresh
             f_start = self.stop.norms[0] if f_start is None else f_start
             if quick:
-                refresh = refreshes < self.policy.quick_refreshes and \
-                    self.stop.norms[-1] <= self.policy.quick_refresh_progress * f_start
+                refresh = refreshes < policy.quick_refreshes and \
+                    self.stop.norms[-1] <= policy.quick_refresh_progress * f_start
             else:
-                refresh = refreshes < self.policy.qn_refreshes
+                refresh = refreshes < policy.qn_refreshes
             if snes is not self.snes_set.newton and (why == "tangent" or why == "stalled" and
                                                   refresh):
                 refreshes += why == "stalled"   # K at the current iterate, fresh pairs, go on
-                log.info("qn %s after %d iterations: refactorising there", why, self._last_its)
-                snes = self._method_snes()
+                log.info("qn %s after %d iterations: refactorising there", why, st.last_its)
+                snes = self.refactorisation.method_snes()
                 continue
             if snes is not self.snes_set.newton and qn_only:
                 raise SolverError(f"quasi-Newton failed (SNES reason {reason}) at p = {p}")
             if snes is not self.snes_set.newton:   # Newton from quasi-Newton's iterate if sound
-                sound = not crushed and self.forms.sound(self._x)
+                sound = not crushed and forms.sound(self._x)
                 log.info("%s: SNES reason %d after %d iterations%s: Newton takes over from %s",
-                         snes.getType(), reason, self._last_its,
+                         snes.getType(), reason, st.last_its,
                          " (tissue crushed)" if crushed else "",
                          "there" if sound else "the start")
                 snes = self.snes_set.newton
                 if not sound:
                     start.copy(self._x)
                 continue
-            if shift >= self.shift_retry * self.kept.diag_scale:   # continuation takes over
+            if shift >= st.settings.shift_retry * kept.diag_scale:   # continuation takes over
                 raise SolverError(f"Newton failed (SNES reason {reason}) at p = {p}")
-            shift = max(100 * shift, 1e-2 * self.kept.diag_scale)
-            self.kept.set_shift(shift)
-            self._stats.shifts.append(shift)
+            shift = max(100 * shift, 1e-2 * kept.diag_scale)
+            kept.set_shift(shift)
+            st.stats.shifts.append(shift)
             log.info("SNES reason %d after %d iterations: diagonal shift %.3g", reason,
-                     self._last_its, shift)
-
-    @property
-    def stats(self) -> SolveStats:
-        """What the last solve did, with the relax iterations of corrections since."""
-        return self._stats
+                     st.last_its, shift)
 
     def snapshot(self):
         """(p, u, solved_xtol) of the current equilibrium, for `restore`."""
-        return self.p.copy(), self.u_eq.copy(), self.solved_xtol
+        st = self.state
+        return st.p.copy(), st.u_eq.copy(), st.solved_xtol
 
     def restore(self, snap):
         """Return to an equilibrium saved by `snapshot` (no solve)."""
-        p, u, self.solved_xtol = snap
-        self.set_params(p)
-        self.p = p.copy()
-        u.copy(self.u_eq)
-        self.forms.set_state(self.u_eq)
+        st = self.state
+        p, u, st.solved_xtol = snap
+        self.forms.set_params(p)
+        st.p = p.copy()
+        u.copy(st.u_eq)
+        self.forms.set_state(st.u_eq)
         self.linearisation.moved()
         self.kept.moved()
+
+    def destroy(self):
+        for v in (self._x, self._w, self._r):
+            v.destroy()

@@ -12,48 +12,38 @@ import time
 
 import numpy as np
 
-from fem.factorisation import FactorState
-from fem.nonlinear import SolveStats
+from fem.state import SolveStats
 from meshes.errors import SolverError
 
 log = logging.getLogger(__name__)
 
 
-class PathFollowing:
-    """Predictions and continuation (mixin of `fem.equilibrium.Equilibrium`)."""
+class PathFollower:
+    """Predictions and continuation, a part: first-order states (`first_order`), their
+    admissibility (`admissible`), secant continuation along a path (`follow`) and
+    quasi-Newton relaxation on the kept factorisation (`relax`).
 
-    def tangent_step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
-        """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
-        tangent solve; with no factorisation yet, one is made at the equilibrium, and a
-        Cholesky factor of K there is applied once (no K assembled, no CG); not so with the
-        tangent's own preconditioner (`own_tangent_pc`). ``rhs``: the
-        load to respond to instead of -df/dp dp (e.g. `EnergyForms.goal_load`; consumed)."""
-        dp = np.asarray(dp, dtype=float)
-        out = self.u_eq.duplicate()
-        out.set(0.0)
-        if self.has_sensitivity and rhs is None:
-            out.maxpy(dp, self.linearisation.sensitivities)
-            return out
-        rhs = self.load(-dp) if rhs is None else rhs
-        own = self.own_tangent_pc
-        if not self.kept.ready and not own:
-            self.factorise_at_equilibrium()
-        pc = self.ksp.getPC()
-        if not own and self.factor is FactorState.EQUILIBRIUM and pc.getType() == "cholesky":
-            pc.apply(rhs, out)
-        else:
-            self.solve_tangent(rhs, out)
-        rhs.destroy()
-        return out
+    Args:
+        forms: `fem.forms.EnergyForms`; kept: `fem.factorisation.KeptFactor`; snes_set:
+            `fem.factorisation.SnesSet`; stop: `fem.stopping.StoppingTest`; tangents:
+            `fem.tangent.TangentSolves`; refactorisation: `fem.factorisation.Refactorisation`;
+            state: `fem.state.EquilibriumState`.
+    """
 
-    def _can_predict(self, p) -> bool:
+    def __init__(self, forms, kept, snes_set, stop, tangents, refactorisation, state):
+        self.forms, self.kept, self.snes_set, self.stop = forms, kept, snes_set, stop
+        self.tangents, self.refactorisation, self.state = tangents, refactorisation, state
+
+    def can_predict(self, p) -> bool:
         """p differs from the equilibrium's (a solved one: not a rest state whose goals are
         not the rest) and a factorisation (or dx/dp) is at hand, or
         quasi-Newton would make one at the equilibrium first anyway (then it is made for the
         prediction and serves both)."""
-        quasi_newton = self.method == "qn" and self.xtol >= self.policy.qn_min_xtol
-        return bool(np.any(p != self.p) and np.isfinite(self.solved_xtol)
-                    and (self.kept.ready or self.has_sensitivity or quasi_newton))
+        st = self.state
+        quasi_newton = st.method == "qn" and st.xtol >= st.policy.qn_min_xtol
+        return bool(np.any(p != st.p) and np.isfinite(st.solved_xtol) and (
+            self.kept.ready or self.tangents.linearisation.sensitivities is not None
+            or quasi_newton))
 
     def first_order(self, p, follow: bool = False):
         """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None
@@ -61,20 +51,21 @@ class PathFollowing:
         where it inverts an element, the state `follow` reaches instead; the kept
         factorisation, of K at p0, is then refactorised at the next solve's start.
         Collective."""
-        if not self._can_predict(p):
+        if not self.can_predict(p):
             return None
+        st = self.state
         try:
             # nonlinear goals: the tissue's response to the exact goals at p (one solve
             # pair, not the free S dp): a rigid-motion plan's full trial at paper size, 2.7°
             # to 5° of rotation, then failed from S dp after 20 s (class3-asym, GN step 1)
-            step = self.tangent_step(p - self.p, None if self.forms.linear else
-                                     self.forms.goal_load(self.p, self.u_eq, p))
+            step = self.tangents.step(p - st.p, None if self.forms.linear else
+                                      self.forms.goal_load(st.p, st.u_eq, p))
         except SolverError:
             return None
         try:
-            x = self.admissible(self.u_eq, step)
+            x = self.admissible(st.u_eq, step)
             if x is None and follow:
-                x = self.follow(self.p, self.u_eq, step, p)
+                x = self.follow(st.p, st.u_eq, step, p)
                 self.kept.request_refactor(x is not None)
             return x
         finally:
@@ -95,11 +86,11 @@ class PathFollowing:
         None. ``iterations`` and ``substep_mm`` default to the policy's path settings. The
         relax iterations (and a factorisation, if there was none) are added to the current
         stats. Collective."""
-        pol = self.policy
+        pol = self.state.policy
         iterations = pol.path_iterations if iterations is None else iterations
         substep_mm = pol.path_substep_mm if substep_mm is None else substep_mm
         p0, p = np.asarray(p0, dtype=float), np.asarray(p, dtype=float)
-        stats = self._stats   # relax() keeps its own
+        stats = self.state.stats   # relax() keeps its own
         h = 1.0 / max(1, int(np.ceil(step.norm(PETSc.NormType.INFINITY) / substep_mm)))
         x, prev, t, h_prev, substeps = x0.copy(), None, 0.0, 0.0, 0   # t: the way done
         found = False
@@ -112,7 +103,7 @@ class PathFollowing:
                 if start is None:   # first-order
                     start = self._offset(x, step, None, h)
                 if start is None:
-                    if h < self.policy.min_substep:
+                    if h < pol.min_substep:
                         log.info("no path to p = %s: every start from %.3g of the way inverts "
                                  "an element", np.round(p, 3).tolist(), t)
                         return None
@@ -129,7 +120,7 @@ class PathFollowing:
             found = True
             return x
         finally:
-            self._stats = stats
+            self.state.stats = stats
             for v in (prev, None if found else x):
                 if v is not None:
                     v.destroy()
@@ -154,39 +145,40 @@ class PathFollowing:
         if not self.forms.sound(x):
             x.destroy()
             x = None
-        self.forms.set_state(self.u_eq)
+        self.forms.set_state(self.state.u_eq)
         return x
 
     def relax(self, p, x: PETSc.Vec, iterations: int, resume: bool = False) -> SolveStats:
         """At most ``iterations`` quasi-Newton (L-BFGS) steps towards the equilibrium at p
         (Np,) from x (updated in place, mm), on the kept factorisation: nothing is assembled
         or factorised; each step is one triangular solve pair and two residuals (its
-        critical-point line search, `_critical_step`). Stops early where L-BFGS stalls
-        (`SolverPolicy.stall_ratio`); steps that end with a larger residual norm than x
-        had, or with an inverted element, are undone. For cheap corrections of a
-        prediction; the scene's equilibrium (p, u) is unchanged. x must not invert an
-        element. ``resume``: keep the
-        L-BFGS pairs of the previous relax, if no solve came between (a continuation along
-        a path: pairs y = F(x + s) - F(x) do not depend on p, the glued penalty being
-        quadratic, and recent ones hold the curvature near x; a sliding penalty's turns with
+        critical-point line search, `NonlinearSolver.critical_step`). Stops early where
+        L-BFGS stalls (`SolverPolicy.stall_ratio`); steps that end with a larger residual
+        norm than x had, or with an inverted element, are undone. For cheap corrections of
+        a prediction; the scene's equilibrium (p, u) is unchanged. x must not invert an
+        element. ``resume``: keep the L-BFGS pairs of the previous relax, if no solve came
+        between (a continuation along a path: pairs y = F(x + s) - F(x) do not depend on p,
+        the glued penalty being quadratic, and recent ones hold the curvature near x; a
+        sliding penalty's turns with
         n(p), by the few degrees of a substep). Collective."""
-        p = self.set_params(p)
-        self._stats = SolveStats()
+        st = self.state
+        p = self.forms.set_params(p)
+        st.stats = stats = SolveStats()
         t0 = time.perf_counter()
         if not self.kept.ready:   # no factorisation yet: one at the equilibrium
-            self.factorise_at_equilibrium()
+            self.refactorisation.at_equilibrium()
         # residual tolerance relative to the start's residual
-        self.stop.start(self.xtol, self.frtol, self.atol, self._stats.residual_history)
+        self.stop.start(st.xtol, st.settings.frtol, st.settings.atol, stats.residual_history)
         snes = self.snes_set.relax(iterations, resume)
         x0 = x.copy()
         try:
             self.stop.run(snes, x)
-            self._stats.iterations = snes.getIterationNumber()
+            stats.iterations = snes.getIterationNumber()
             if not self.forms.sound(x) or self.stop.norms[-1] > self.stop.norms[0]:
                 x0.copy(x)   # steps that end unsound or with a larger residual: keep x
         finally:
             x0.destroy()
-            self.set_params(self.p)
-            self.forms.set_state(self.u_eq)
-        self._stats.total = time.perf_counter() - t0
-        return self._stats
+            self.forms.set_params(st.p)
+            self.forms.set_state(st.u_eq)
+        stats.total = time.perf_counter() - t0
+        return stats

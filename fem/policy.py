@@ -29,7 +29,7 @@ PRESETS = {
 }
 #: The tangent solves' own preconditioner, for scenes too large for a factorisation to serve
 #: them (options under ``<prefix>tangent_``, e.g. ``-orthodiff_fwd_tangent_pc_type gamg``;
-#: `fem.tangent.TangentSolves.own_tangent_pc`, docs/solver.md): CG with smoothed-aggregation
+#: `fem.tangent.Linearisation.own_pc`, docs/solver.md): CG with smoothed-aggregation
 #: AMG on K at the equilibrium, with its rigid-body near-nullspace. The threshold drops weak
 #: couplings from the aggregation graph: CG to 1e-8 took 26 and 34 iterations at coarse and
 #: medium (class3, 5 mm advance), against 53 and 60 without it.

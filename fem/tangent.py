@@ -1,7 +1,7 @@
 """Tangent solves at the equilibrium: the linearisation there, a part that owns it
 (`Linearisation`: K, the tangent KSP, the cached dx/dp), and K⁻¹ rhs by CG on the kept
 factorisation (refactorised when it has gone stale) and the sensitivities dx/dp (all columns
-at once, cached) for adjoints and exploration (`TangentSolves`, a mixin of `Equilibrium`).
+at once, cached) for adjoints and exploration (`TangentSolves`, a part).
 """
 
 from __future__ import annotations
@@ -228,15 +228,27 @@ class Linearisation:
 
 
 class TangentSolves:
-    """Adjoint and sensitivity solves (mixin of `fem.equilibrium.Equilibrium`)."""
+    """Tangent, adjoint and sensitivity solves at the current equilibrium, a part: K⁻¹ rhs
+    (`solve`), dx/dp (`sensitivity`, cached in the `Linearisation`) and dx/dp · dp (`step`).
 
-    def solve_tangent(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
+    Args:
+        forms: `fem.forms.EnergyForms`; kept: `fem.factorisation.KeptFactor`;
+            linearisation: `Linearisation`; refactorisation:
+            `fem.factorisation.Refactorisation`; state: `fem.state.EquilibriumState`.
+    """
+
+    def __init__(self, forms, kept, linearisation: Linearisation, refactorisation, state):
+        self.forms, self.kept, self.linearisation = forms, kept, linearisation
+        self.refactorisation, self.state = refactorisation, state
+
+    def solve(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
         """out = K⁻¹ rhs, K = df/du at the current equilibrium (collective; Dirichlet rows
         are identity), by CG on the kept factorisation, refactorised at the equilibrium
         where it has gone stale or is far from here (`Linearisation.solve`). Returns the CG
         iteration count."""
-        return self.linearisation.solve(rhs, out, self.p, self.u_eq, self._last_its,
-                                        self.factorise_at_equilibrium)
+        st = self.state
+        return self.linearisation.solve(rhs, out, st.p, st.u_eq, st.last_its,
+                                        self.refactorisation.at_equilibrium)
 
     def sensitivity(self) -> list:
         """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
@@ -246,39 +258,40 @@ class TangentSolves:
         iterations from it; `Linearisation.block_cg`, at most
         `SolverPolicy.sensitivity_cg_its` iterations), else one factorisation of K at the
         equilibrium and one block solve of all Np columns (MUMPS: ~ the cost of one column);
-        else Np tangent solves."""
-        lin = self.linearisation
+        else Np tangent solves (`step`)."""
+        lin, st = self.linearisation, self.state
         if lin.sensitivities is None:
+            dfdp = self.forms.dfdp(st.p, st.u_eq)
             block = None
             if self.kept.state is FactorState.ITERATE and self.kept.serves(
-                    self._last_its, self.policy.tangent_lag_its, unshifted=True):
-                block = lin.block_cg(self.dfdp, self.p, self.u_eq,
-                                     self.policy.sensitivity_cg_its)
-            block = block or lin.block_solve(self.dfdp, self.u_eq,
-                                             self.factorise_at_equilibrium)
-            lin.sensitivities = block or [self.tangent_step(e) for e in np.eye(self.n_params)]
+                    st.last_its, st.policy.tangent_lag_its, unshifted=True):
+                block = lin.block_cg(dfdp, st.p, st.u_eq, st.policy.sensitivity_cg_its)
+            block = block or lin.block_solve(dfdp, st.u_eq, self.refactorisation.at_equilibrium)
+            lin.sensitivities = block or [self.step(e) for e in np.eye(len(st.p))]
         return lin.sensitivities
 
-    @property
-    def own_tangent_pc(self) -> bool:
-        """The tangent solves have a preconditioner of their own (`Linearisation.own_pc`)."""
-        return self.linearisation.own_pc
-
-    @property
-    def has_sensitivity(self) -> bool:
-        """dx/dp is cached for the current equilibrium (direct mode costs nothing more)."""
-        return self.linearisation.sensitivities is not None
-
-    @property
-    def tangent_ksp(self) -> PETSc.KSP:
-        """The tangent solves' KSP (`Linearisation.ksp`), to read, not to change."""
-        return self.linearisation.ksp
-
-    def tangent_matrix(self) -> PETSc.Mat:
-        """K = df/du at the equilibrium (N×N, kPa·mm; Dirichlet rows identity), assembled
-        once per equilibrium and owned by the engine (do not destroy or change it)."""
-        return self.linearisation.matrix(self.p, self.u_eq)
-
-    def forget_sensitivities(self):
-        """Drop the cached dx/dp (`sensitivity`): its next use, or `tangent_step`'s, solves."""
-        self.linearisation.forget_sensitivities()
+    def step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
+        """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one
+        tangent solve; with no factorisation yet, one is made at the equilibrium, and a
+        Cholesky factor of K there is applied once (no K assembled, no CG); not so with the
+        tangent's own preconditioner (`Linearisation.own_pc`). ``rhs``: the load to respond
+        to instead of -df/dp dp (e.g. `EnergyForms.goal_load`; consumed)."""
+        st, lin = self.state, self.linearisation
+        dp = np.asarray(dp, dtype=float)
+        out = st.u_eq.duplicate()
+        out.set(0.0)
+        if lin.sensitivities is not None and rhs is None:
+            out.maxpy(dp, lin.sensitivities)
+            return out
+        rhs = self.forms.load(-dp, st.p, st.u_eq) if rhs is None else rhs
+        own = lin.own_pc
+        if not self.kept.ready and not own:
+            self.refactorisation.at_equilibrium()
+        pc = self.kept.ksp.getPC()
+        if not own and self.kept.state is FactorState.EQUILIBRIUM and \
+                pc.getType() == "cholesky":
+            pc.apply(rhs, out)
+        else:
+            self.solve(rhs, out)
+        rhs.destroy()
+        return out

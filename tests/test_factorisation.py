@@ -134,11 +134,11 @@ def test_a_shifted_factorisation_is_not_used_as_the_equilibriums(monkeypatch):
     eq.forget_sensitivities()
     eq.kept.moved()                                # as if the equilibrium had moved
     pivots = iter([1])                             # one negative pivot, then the real ones
-    real_inertia, real_solve = eq.kept.inertia, eq.solve_tangent
+    real_inertia, real_solve = eq.kept.inertia, eq.tangents.solve
     monkeypatch.setattr(eq.kept, "inertia",
                         lambda pc, A: next(pivots, None) or real_inertia(pc, A))
     seen = []
-    monkeypatch.setattr(eq, "solve_tangent",
+    monkeypatch.setattr(eq.tangents, "solve",
                         lambda rhs, out: seen.append(eq.factor) or real_solve(rhs, out))
     shifts = len(eq.stats.shifts)
     S = eq.sensitivity()
@@ -228,7 +228,7 @@ def test_a_kept_factorisation_serves_only_while_nothing_asks_for_a_new_one():
     from petsc4py import PETSc
 
     from fem.factorisation import KeptFactor
-    from fem.nonlinear import SolveStats
+    from fem.state import SolveStats
 
     A = PETSc.Mat().createAIJ((3, 3), nnz=1, comm=MPI.COMM_SELF)
     for i in range(3):

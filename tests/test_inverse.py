@@ -79,8 +79,8 @@ def test_tangent_ready_solve_serves_the_adjoint_without_a_factorisation(mandible
     assert (stats[False].factorisations, stats[True].factorisations) == (1, 2)
     assert np.abs(points[True] - points[False]).max() < 1e-3   # the same equilibrium, mm
     eq, calls = scene.eq, []
-    refactorise = eq.factorise_at_equilibrium
-    eq.factorise_at_equilibrium = lambda: calls.append(1) or refactorise()
+    refactorise = eq.refactorisation.at_equilibrium
+    eq.refactorisation.at_equilibrium = lambda: calls.append(1) or refactorise()
     g = obj.gradient()
     assert calls == [] and eq.tangent_ksp.getIterationNumber() > 1   # reused, iterated
     eq.factorise_at_equilibrium()   # now with K at the equilibrium itself
@@ -398,7 +398,7 @@ def test_block_sensitivity_equals_column_solves(mandible_only, tiny_anatomy, sol
     scene.solve({"mandible.advance_mm": 3.0, "mandible.yaw_deg": 2.0})
     eq = scene.eq
     with monkeypatch.context() as m:   # the block path makes no tangent solve
-        m.setattr(eq, "tangent_step", lambda dp: pytest.fail("a column solve"))
+        m.setattr(eq.tangents, "step", lambda dp: pytest.fail("a column solve"))
         block = [s.array.copy() for s in eq.sensitivity()]
     eq.forget_sensitivities()   # tangent_step solves again
     for e, b in zip(np.eye(eq.n_params), block):

@@ -209,7 +209,7 @@ def test_failed_solve_without_a_step_keeps_the_linearisation(mandible_scene, mon
     def fail(*args, **kwargs):
         raise SolverError("simulated failure")
 
-    monkeypatch.setattr(eq, "_newton", fail)
+    monkeypatch.setattr(eq.solver, "solve_at", fail)
     with pytest.raises(SolverError, match="largest step reached"):
         eq.solve(p0 + np.r_[1.0, np.zeros(5)], quick=True)
     monkeypatch.undo()

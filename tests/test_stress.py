@@ -82,8 +82,8 @@ def test_inverted_first_order_start_follows_the_path(mandible_only, tiny_anatomy
     for predict in (True, False):
         scene = mandible_only(tiny_anatomy)
         eq, calls = scene.eq, []
-        follow = eq.follow
-        eq.follow = lambda *a, **k: calls.append(1) or follow(*a, **k)
+        follow = eq.path.follow
+        eq.path.follow = lambda *a, **k: calls.append(1) or follow(*a, **k)
         p = scene.param_vector({"mandible.advance_mm": 20.0})
         stats[predict] = st = eq.solve(p, predict=predict)
         _assert_sound(scene, st)
@@ -157,7 +157,7 @@ def test_crushing_rotation_is_not_an_equilibrium(mandible_scene, monkeypatch):
     monkeypatch.undo()
 
 
-@pytest.mark.parametrize("method, trial, advance", [("qn", "_slope", 10.0),
+@pytest.mark.parametrize("method, trial, advance", [("qn", "slope", 10.0),
                                                     ("newton", "energy", 25.0)])
 def test_line_search_rejects_inverting_trials(mandible_only, tiny_anatomy, monkeypatch,
                                               method, trial, advance):
@@ -169,7 +169,7 @@ def test_line_search_rejects_inverting_trials(mandible_only, tiny_anatomy, monke
     first factorisation is K at rest."""
     scene = mandible_only(tiny_anatomy)
     eq = scene.eq
-    owner = eq if trial == "_slope" else eq.forms   # the SNES's energy callback is the forms'
+    owner = eq.solver if trial == "slope" else eq.forms   # the SNES's energy callback: forms'
     seen, original = [], getattr(owner, trial)
 
     def spy(*args, **kwargs):
