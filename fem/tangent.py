@@ -50,7 +50,7 @@ class Linearisation:
         factor_pc = kept.ksp.getPC()
         self.K = forms.A.duplicate()
         self._assembled = False
-        self.sensitivities = None   # dx/dp: Np PETSc vectors, mm per unit, or None
+        self._sensitivities = None   # dx/dp: Np PETSc vectors, mm per unit, or None
         ksp = self.ksp = PETSc.KSP().create(forms.domain.comm)
         ksp.setOptionsPrefix(prefix + TANGENT_PREFIX)
         ksp.setType("cg")
@@ -75,11 +75,23 @@ class Linearisation:
         self._assembled = False
         self.forget_sensitivities()
 
+    @property
+    def sensitivities(self):
+        """dx/dp at the equilibrium, kept (`keep_sensitivities`): Np PETSc vectors, mm per
+        unit; None until solved."""
+        return self._sensitivities
+
+    def keep_sensitivities(self, columns: list) -> list:
+        """Keep ``columns`` (dx/dp at the current equilibrium) until it moves; returns them."""
+        self.forget_sensitivities()
+        self._sensitivities = columns
+        return columns
+
     def forget_sensitivities(self):
         """Drop the kept dx/dp."""
-        for v in self.sensitivities or []:
+        for v in self._sensitivities or []:
             v.destroy()
-        self.sensitivities = None
+        self._sensitivities = None
 
     @property
     def own_pc(self) -> bool:
@@ -267,7 +279,7 @@ class TangentSolves:
                     st.last_its, st.policy.tangent_lag_its, unshifted=True):
                 block = lin.block_cg(dfdp, st.p, st.u_eq, st.policy.sensitivity_cg_its)
             block = block or lin.block_solve(dfdp, st.u_eq, self.refactorisation.at_equilibrium)
-            lin.sensitivities = block or [self.step(e) for e in np.eye(len(st.p))]
+            lin.keep_sensitivities(block or [self.step(e) for e in np.eye(len(st.p))])
         return lin.sensitivities
 
     def step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
