@@ -87,18 +87,22 @@ def test_sensitivity_by_block_cg_on_a_near_factorisation(lag):
     eq.destroy()
 
 
-def test_block_cg_that_gives_up_falls_back_to_the_factorisation():
+def test_block_cg_that_gives_up_falls_back_to_the_factorisation(monkeypatch):
     """Block CG stopped after one iteration (`SolverPolicy.sensitivity_cg_its` = 1) gives
-    up; dx/dp then refactorises at the equilibrium and solves there."""
+    up; dx/dp then refactorises at the equilibrium and solves there, with the K that CG
+    used: K is assembled once."""
     scene = _scene(policy=dataclasses.replace(DEFAULT_POLICY, sensitivity_cg_its=1))
     eq = scene.eq
     scene.solve([0.5, -0.8])
     eq.factorise_at_equilibrium()
     scene.solve([0.55, -0.75])
     assert eq.factor is FactorState.ITERATE
-    made = _made(eq)
+    made, real, assembled = _made(eq), eq.forms.jacobian, []
+    monkeypatch.setattr(eq.forms, "jacobian", lambda x, out, turns_at=None: (
+        assembled.append(out) or real(x, out, turns_at)))
     eq.sensitivity()
     assert eq.factor is FactorState.EQUILIBRIUM and _made(eq) == made + 1
+    assert assembled == [eq.linearisation.K], assembled
     eq.destroy()
 
 
