@@ -205,6 +205,8 @@ class Equilibrium:
     @policy.setter
     def policy(self, policy):
         self.state.settings = dataclasses.replace(self.state.settings, policy=policy)
+        for part in (self.kept, self.stop, self.linearisation):   # made with one
+            part.set_policy(policy)
 
     @property
     def method(self) -> str:

@@ -71,6 +71,11 @@ class KeptFactor:
                           for k, v in settings.items() if k.startswith("mat_mumps_icntl_")}
             self.new_mumps_factor(pc)
 
+    def set_policy(self, policy):
+        """The `fem.policy.SolverPolicy` of the next operations (the equilibrium's, when it
+        is replaced)."""
+        self.policy = policy
+
     @property
     def ready(self) -> bool:
         """A factorisation of some K is held."""

@@ -41,6 +41,11 @@ class StoppingTest:
         self.f_ref, self.tangent, self.history = None, False, []
         self.f0 = np.inf                     # this solve's residual reference (mN)
 
+    def set_policy(self, policy):
+        """The `fem.policy.SolverPolicy` of the next operations (the equilibrium's, when it
+        is replaced)."""
+        self.policy = policy
+
     def start(self, xtol: float, frtol: float, atol: float, history: list,
               f_ref: float | None = None, tangent: bool = False):
         """Set the tolerances of the next solves (mm, -, mN), the list every residual norm is

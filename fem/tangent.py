@@ -63,6 +63,11 @@ class Linearisation:
         self.K.setNearNullSpace(forms.A.getNearNullSpace())   # for a PC of its own (GAMG)
         ksp.setFromOptions()
 
+    def set_policy(self, policy):
+        """The `fem.policy.SolverPolicy` of the next operations (the equilibrium's, when it
+        is replaced)."""
+        self.policy = policy
+
     def matrix(self, p, x) -> PETSc.Mat:
         """K at the equilibrium x at p (its normals), assembled once until `moved`."""
         if not self._assembled:

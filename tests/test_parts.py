@@ -25,8 +25,9 @@ def test_the_parts_share_one_state_and_settings_are_replaced_whole():
     for part in (eq.refactorisation, eq.tangents, eq.path, eq.solver):
         assert part.state is st
     opts = eq.settings
-    eq.policy = dataclasses.replace(DEFAULT_POLICY, min_substep=0.5)
-    assert st.policy.min_substep == 0.5 and eq.settings is not opts
+    eq.policy = policy = dataclasses.replace(DEFAULT_POLICY, min_substep=0.5)
+    assert st.policy is policy and eq.settings is not opts
+    assert eq.kept.policy is eq.stop.policy is eq.linearisation.policy is policy
     assert eq.settings.max_it == opts.max_it and eq.settings.lag_its == opts.lag_its
     eq.method = "newton"
     assert eq.refactorisation.method_snes() is eq.snes_set.newton
