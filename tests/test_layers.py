@@ -18,7 +18,7 @@ FEM_PARTS = ["factorisation", "tangent", "path", "nonlinear", "equilibrium"]
 def _imports(path: Path) -> set:
     """Dotted names of every module ``path`` imports (absolute imports)."""
     names = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
         if isinstance(node, ast.Import):
             names |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
