@@ -314,7 +314,7 @@ class Equilibrium:
     @property
     def has_sensitivity(self) -> bool:
         """dx/dp is cached for the current equilibrium."""
-        return self.linearisation.sensitivities is not None
+        return self.tangents.has_sensitivity
 
     @property
     def own_tangent_pc(self) -> bool:

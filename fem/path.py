@@ -42,8 +42,7 @@ class PathFollower:
         st = self.state
         quasi_newton = st.method == "qn" and st.xtol >= st.policy.qn_min_xtol
         return bool(np.any(p != st.p) and np.isfinite(st.solved_xtol) and (
-            self.kept.ready or self.tangents.linearisation.sensitivities is not None
-            or quasi_newton))
+            self.kept.ready or self.tangents.has_sensitivity or quasi_newton))
 
     def first_order(self, p, follow: bool = False):
         """The first-order state x(p0) + dx/dp (p - p0) (a new PETSc vector, mm), or None

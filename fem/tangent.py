@@ -258,6 +258,11 @@ class TangentSolves:
         self.forms, self.kept, self.linearisation = forms, kept, linearisation
         self.refactorisation, self.state = refactorisation, state
 
+    @property
+    def has_sensitivity(self) -> bool:
+        """dx/dp is kept for the current equilibrium."""
+        return self.linearisation.sensitivities is not None
+
     def solve(self, rhs: PETSc.Vec, out: PETSc.Vec) -> int:
         """out = K⁻¹ rhs, K = df/du at the current equilibrium (collective; Dirichlet rows
         are identity), by CG on the kept factorisation, refactorised at the equilibrium
