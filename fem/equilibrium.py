@@ -219,10 +219,12 @@ class Equilibrium:
 
     @property
     def max_it(self) -> int:
+        """Iterations per SNES solve (`EquilibriumOptions.max_it`)."""
         return self.state.settings.max_it
 
     @property
     def lag_its(self) -> int:
+        """Reuse of the kept factorisation (`EquilibriumOptions.lag_its`)."""
         return self.state.settings.lag_its
 
     @property

@@ -3,9 +3,9 @@ what the current solve did (`EquilibriumState`, with its `SolveStats`).
 
 `fem.equilibrium.Equilibrium` makes one and hands it to each part (`fem.factorisation.
 Refactorisation`, `fem.tangent.TangentSolves`, `fem.path.PathFollower`, `fem.nonlinear.
-NonlinearSolver`). A part reads the fields it needs there; only the nonlinear solver and the
-facade move the equilibrium (``p``, ``u_eq``, ``solved_xtol``); settings are replaced whole
-(frozen `fem.policy.EquilibriumOptions`), never written into.
+NonlinearSolver`). A part reads the fields it needs there; only the nonlinear solver moves
+the equilibrium (``p``, ``u_eq``, ``solved_xtol``: a solve, `restore`); the facade replaces
+the settings whole (frozen `fem.policy.EquilibriumOptions`), never writing into them.
 """
 
 from __future__ import annotations
