@@ -2,7 +2,9 @@
 
 Stages, each with the well-kept library for it:
 
-1. **read** (`meshes.volume`: SimpleITK, or the InVesalius project reader);
+1. **read** (`meshes.volume`: SimpleITK, or the InVesalius project reader), the values put on
+   HU by the histogram's classes (`meshes.intensity`) and metal's streaks taken out
+   (`meshes.metal`);
 2. **segment** (`meshes.segment`: thresholds or a label map; scipy.ndimage) inside the crop;
 3. **mesh** the soft tissue with CGAL Mesh_3 (``pygalmesh.generate_from_array`` on the tissue
    label), sized per resolution (`CGAL_SIZING`);
@@ -20,7 +22,9 @@ The scene file (JSON, mm in the scene's frame: the CT's patient frame with x lef
 z superior) holds the osteotomy planes and optionally ``frame`` (`meshes.frame`), ``crop``
 (``{"min": [x, y, z], "max": [x, y, z], "free": ["-z"]}``; default: the whole field of view,
 every face held),
-``skin_hu``, ``bone_hu``, ``labels`` (a label map's values, ``{"tissue": 1, "bone": 2}``) and
+``skin_hu``, ``bone_hu`` (HU, after the scan is put on HU), ``calibration`` (``"auto"``: a
+CBCT's gray values to HU by its histogram's classes, `meshes.intensity`; ``"none"``: the values
+as they are), ``labels`` (a label map's values, ``{"tissue": 1, "bone": 2}``) and
 ``occlusion`` (4×4 or a .tfm, the final occlusion). A plane may come from a 3D Slicer markups
 file (`meshes.osteotomy.resolve_plane_files`). The result is deterministic (CGAL's seed is
 fixed) and cached under `meshes.synthetic.cache_dir` by the input's content, the options and
@@ -55,11 +59,13 @@ from meshes.anatomy import (
 )
 from meshes.errors import MeshError
 from meshes.frame import estimate_on_scan, from_spec
+from meshes.intensity import read_ct
 from meshes.landmarks import prominence_mm, skin_landmarks
+from meshes.metal import METAL_HU, reduce_metal
 from meshes.osteotomy import Osteotomies, Plane, resolve_plane_files
 from meshes.synthetic import RESOLUTIONS, cache_dir
-from meshes.teeth import ct_teeth, tag_teeth
-from meshes.tissue import ct_fat, tissue_fractions, tissue_report
+from meshes.teeth import TEETH_HU, ct_teeth, tag_teeth
+from meshes.tissue import FAT_HU, ct_fat, tissue_fractions, tissue_report
 from meshes.volume import Volume, read_volume
 
 log = logging.getLogger(__name__)
@@ -125,10 +131,22 @@ def _digest(path: Path) -> str:
 def _code_digest() -> str:
     """The pipeline's own source: a cached scene is rebuilt when the code that made it
     changes (the synthetic heads bump `GENERATOR_VERSION` by hand; here no hand is needed)."""
-    from meshes import anatomy, frame, landmarks, osteotomy, segment, teeth, tissue, volume
+    from meshes import (
+        anatomy,
+        frame,
+        intensity,
+        landmarks,
+        metal,
+        osteotomy,
+        segment,
+        teeth,
+        tissue,
+        volume,
+    )
 
     h = hashlib.sha1()
-    for module in (anatomy, frame, landmarks, osteotomy, segment, teeth, tissue, volume):
+    for module in (anatomy, frame, intensity, landmarks, metal, osteotomy, segment, teeth,
+                   tissue, volume):
         h.update(Path(module.__file__).read_bytes())
     h.update(Path(__file__).read_bytes())
     return h.hexdigest()
@@ -258,6 +276,14 @@ def _outside_label(labels: np.ndarray, volume: Volume, mid, normal) -> np.ndarra
     return out
 
 
+def read_scan(ct_path, spec: dict) -> tuple:
+    """(volume in HU, `meshes.intensity.Intensity`, metal report) of a CT or CBCT: its gray
+    values put on HU as the scene file's ``calibration`` says, its metal's streaks out."""
+    scan, intensity = read_ct(ct_path, spec.get("calibration", "auto"))
+    scan, metal = reduce_metal(scan)
+    return scan, intensity, metal
+
+
 def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = False):
     """(Anatomy, info) from a CT (or label map) and a scene file; info has ``timings_s``
     per stage and ``min_quality``. No cache: see `ct_anatomy`."""
@@ -267,7 +293,11 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     timings = {}
     t = time.perf_counter()
     is_map = labelmap or spec.get("labels") is not None
-    scan = read_volume(ct_path)
+    intensity = metal = None
+    if is_map:
+        scan = read_volume(ct_path)
+    else:
+        scan, intensity, metal = read_scan(ct_path, spec)
     volume = scan.coarsened(labels=is_map)   # a CBCT's voxels averaged
     timings["read"] = time.perf_counter() - t
 
@@ -350,9 +380,15 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
         anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin, fat)
         anatomy.material = "tissues"
     timings["tissues"] = time.perf_counter() - t
-    return anatomy, {"timings_s": timings, "tissues": tissue_report(anatomy),
-                     "min_quality": float(tet_quality(anatomy.points, anatomy.cells).min()),
-                     "voxel_mm": volume.spacing.tolist(), **frame.report()}
+    info = {"timings_s": timings, "tissues": tissue_report(anatomy),
+            "min_quality": float(tet_quality(anatomy.points, anatomy.cells).min()),
+            "voxel_mm": volume.spacing.tolist(), **frame.report()}
+    if intensity is not None:
+        given = tuple(k for k in ("skin_hu", "bone_hu") if k in spec)
+        info["intensity"] = intensity.report({**anatomy.thresholds, "teeth_hu": TEETH_HU,
+                                              "fat_hu": FAT_HU, "metal_hu": METAL_HU}, given)
+        info["metal"] = metal
+    return anatomy, info
 
 
 def _fat_rule(volume: Volume, labels, is_map: bool):

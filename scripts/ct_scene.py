@@ -53,10 +53,9 @@ def parser():
 def propose(args, comm) -> int:
     """``--propose-osteotomies``: the proposed file, written whole on rank 0."""
     from fem.io import write_json
-    from meshes.ct import read_scene_file
+    from meshes.ct import read_scan, read_scene_file
     from meshes.errors import MeshError
     from meshes.propose import propose as proposal
-    from meshes.volume import read_volume
 
     if args.labelmap:
         raise MeshError("--propose-osteotomies reads HU: give the CT, not a label map")
@@ -64,8 +63,7 @@ def propose(args, comm) -> int:
     if comm.rank == 0:
         try:
             base = None if args.osteotomies is None else read_scene_file(args.osteotomies)
-            spec = proposal(read_volume(args.ct), base,
-                            args.osteotomies or "")
+            spec = proposal(read_scan(args.ct, base or {})[0], base, args.osteotomies or "")
         except MeshError as e:
             spec = str(e)
     spec = comm.bcast(spec, root=0)
@@ -78,6 +76,19 @@ def propose(args, comm) -> int:
               f"{spec['crop']}; adjust them, then: ct_scene.py --osteotomies "
               f"{args.propose_osteotomies}")
     return 0
+
+
+def intensity_line(intensity: dict, metal: dict) -> str:
+    """One line: where the scan's HU came from, and its metal."""
+    c, th = intensity["classes"], intensity["thresholds"]
+    how = {"hu": "in HU", "given": "taken as they are (calibration: none)",
+           "estimated": "put on HU by its classes"}[intensity["source"]]
+    classes = ", ".join(f"{k} {v:g}" for k, v in c.items())
+    return (f"intensities: {how}" + (f" (the scan's {classes})" if classes else "")
+            + "; thresholds " + ", ".join(f"{k} {v['hu']:g} HU ({v['source']})"
+                                          for k, v in th.items() if k in ("skin_hu", "bone_hu"))
+            + (f"; metal {metal['mm3']:g} mm³ in {metal['components']} parts, its streaks "
+               f"interpolated" if metal["mm3"] else "; no metal"))
 
 
 def main(argv=None):
@@ -132,11 +143,14 @@ def main(argv=None):
             "skin_facets": int((anatomy.facet_tags == SKIN).sum()),
             "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
             "min_quality": info["min_quality"], "voxel_mm": info["voxel_mm"],
+            "intensity": info.get("intensity"), "metal": info.get("metal"),
             **anatomy.head_frame.report(), "cached": info["cached"], "timings_s": timings}
         print(f"{mesh}: {anatomy.n_vertices} vertices, {anatomy.n_cells} tets, segments "
               f"{report['segments']}, landmarks {sorted(report['landmarks'])}, min quality "
               f"{info['min_quality']:.3f}, {timings['total']:.1f} s"
               + (" (cached)" if info["cached"] else ""))
+        if info.get("intensity"):
+            print(intensity_line(info["intensity"], info["metal"]))
         tilt = anatomy.head_frame.tilt_deg()
         print("head frame: tilted from the scanner's axes by "
               + ", ".join(f"{k.split('_')[0]} {v:+.2f} deg" for k, v in tilt.items())

@@ -90,12 +90,12 @@ def _ct_outcome(args, scene, skin, frame, landmarks, comm) -> dict:
     bones = postop.bone_surfaces(scene)
     out = None
     if comm.rank == 0:
-        from meshes.volume import read_volume
+        from meshes.intensity import read_ct
 
         try:
             timings = {}
             t = time.perf_counter()
-            pre, post = read_volume(args.pre_ct), read_volume(args.post)
+            (pre, _), (post, _) = read_ct(args.pre_ct), read_ct(args.post)   # HU
             timings["read"] = time.perf_counter() - t
             t = time.perf_counter()
             reg = postop.register_ct(pre, post, bones, frame, landmarks)
