@@ -138,12 +138,12 @@ def _with_brackets(v, hu=8000.0, streak=600.0):
 
 
 def test_metal_is_reported_and_its_streaks_leave_no_bone_nor_holes():
-    """Brackets with streaks on the synthetic CT (1.25 mm) with crowns: the report finds the
-    metal (at least the brackets' volume, every part in their slices), and after
-    `reduce_metal` the body and bone masks outside the brackets differ from the clean scan's
-    in the streaked slices by at most 0.25 % of the masks' voxels there (0.18 % and 0.08 %: the skin's edge, interpolated across 7.5 mm of
-    z): no bone specks in the tissue, no holes in the body. Without the reduction they differ
-    by 1.5 % and more."""
+    """Brackets with streaks on the synthetic CT (1.25 mm) with crowns: the report finds the metal
+    (at least the brackets' volume, every part in their slices), and after `reduce_metal` the
+    body and bone masks outside the brackets differ from the clean scan's in the streaked slices
+    by at most 0.25 % of the masks' voxels there (0.18 % and 0.08 %: the skin's edge,
+    interpolated across 7.5 mm of z): no bone specks in the tissue, no holes in the body.
+    Without the reduction they differ by 1.5 % and more."""
     from meshes.metal import FILL_HU, reduce_metal
     from meshes.segment import labels_from_ct
 
