@@ -369,9 +369,10 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     t = time.perf_counter()
     skin = anatomy.facets[anatomy.facet_tags == SKIN]
     rest = tags != SKIN   # the whole boundary but the skin: bone, free and crop faces
+    notes = {}
     anatomy.landmarks = skin_landmarks(frame.to_head(anatomy.points), skin, HEAD_MIDSAGITTAL,
                                        (facets[rest], ~np.isin(tags[rest], (0, RIM))),
-                                       prominence_mm(volume.spacing, frame))
+                                       prominence_mm(volume.spacing, frame), notes)
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -382,7 +383,8 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     timings["tissues"] = time.perf_counter() - t
     info = {"timings_s": timings, "tissues": tissue_report(anatomy),
             "min_quality": float(tet_quality(anatomy.points, anatomy.cells).min()),
-            "voxel_mm": volume.spacing.tolist(), **frame.report()}
+            "voxel_mm": volume.spacing.tolist(), "landmarks_left_out": notes,
+            **frame.report()}
     if intensity is not None:
         given = tuple(k for k in ("skin_hu", "bone_hu") if k in spec)
         info["intensity"] = intensity.report({**anatomy.thresholds, "teeth_hu": TEETH_HU,

@@ -53,6 +53,9 @@ CLIPPED_SHARE = 0.5
 #: The bone class must lie at least this far above soft tissue, as a share of soft tissue's
 #: distance above the air (or the clip): 0.82 in HU; a volume without bone gives about 0.05.
 MIN_BONE_CONTRAST = 0.3
+#: Values below this are a CT's padding beyond its field of view (-2000, -3024), not air:
+#: left out of the histogram (a post-operative CT's, `inverse.postop.FOV_PAD_HU`).
+PAD_HU = -1500.0
 #: Histogram bins for the modes, and the voxels sampled (every SAMPLE-th).
 BINS, SAMPLE = 512, 3
 
@@ -133,6 +136,7 @@ def estimate(volume: Volume) -> Intensity:
     from skimage.filters import threshold_multiotsu, threshold_otsu
 
     v = volume.array.ravel()[::SAMPLE].astype(np.float64)
+    v = v[v > PAD_HU] if np.any(v > PAD_HU) else v   # beyond a CT's field of view
     v = v[v <= np.percentile(v, 99.9)]   # metal and its streaks off the histogram's scale
     if v.min() == v.max():
         raise MeshError(f"no body found in {volume.name}: it holds one value, {v.min():g}")

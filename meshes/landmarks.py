@@ -5,13 +5,15 @@ every `PROFILE_STEP_MM` from the bottom of the face to the top (its ``s``: how f
 ``t``: how high, both mm in the plane). On it (Farkas' soft-tissue definitions):
 
 * ``Prn`` (pronasale): the most anterior point of the profile;
-* ``N`` (soft-tissue nasion): the deepest point above Prn, where the profile turns forward
-  again to the forehead (absent if the face ends before the forehead rises);
+* ``N`` (soft-tissue nasion): the deepest hollow above Prn (the one that stands out most),
+  where the profile turns forward again to the forehead (absent if the face ends before the
+  forehead rises);
 * ``Ls`` (labrale superius), ``Li`` (labrale inferius), ``Pg`` (soft-tissue pogonion): the
   first, second and third forward bulges below Prn; where the nose is not in the scan, the
   lowest bulge is Pg, and the two above it Li and Ls;
-* ``Sn`` (subnasale): the point between Prn and Ls farthest behind their chord, the vertex of
-  the nasolabial angle (where the scan ends above Ls: between Prn and the profile's end);
+* ``Sn`` (subnasale): the vertex of the nasolabial angle, the profile's sharpest concave turn
+  between Prn and Ls, or `SN_CHORD_MM` below Prn where Ls is lower or not in the scan; where
+  the profile ends before that, Sn is left out (the scene's report says why);
 * ``Me`` (soft-tissue menton): the lowest skin point under the chin, from rays cast downward
   in the plane within `MENTON_BACK_MM` behind Pg.
 
@@ -72,6 +74,15 @@ PROMINENCE_MM = 0.5
 #: (0.96 mm) keep every landmark where it was, at coarse and paper.
 STAIRCASE = 0.5
 GAP_MM = 4.0
+#: Sn (module docstring) is sought between Prn and Ls, or the profile this far below Prn
+#: where that is nearer (Ls lies 23 mm below Prn on the synthetic heads, 29 mm on Cranium),
+#: as the profile's sharpest concave turn, its d²s/dt² smoothed over SN_SMOOTH_MM. Cranium's
+#: field of view ends 33 mm below Prn, through the upper lip. Sn was the point farthest
+#: behind the chord from Prn to Ls or to the profile's end; but the lip below Sn runs nearly
+#: along that chord, and moving the scan by a quarter or half a voxel moved Sn's rest
+#: position by 3.5-4.1 mm (medium) and its motion under a 5 mm LeFort I by 0.5-0.9 mm.
+SN_CHORD_MM = 25.0
+SN_SMOOTH_MM = 1.5
 PLATEAU_MM = 0.25
 MENTON_BACK_MM = 20.0
 #: The tragion's construction (module docstring). The pinna stands out from the side of the
@@ -116,19 +127,24 @@ def prominence_mm(voxel_mm=None, frame=None) -> float:
 
 
 def _extrema(s, sign: float, prominence: float):
-    """Indices of the local maxima of sign * s that stand out by ``prominence`` mm."""
+    """(indices, prominences mm) of the local maxima of sign * s that stand out by
+    ``prominence`` mm."""
     from scipy.signal import find_peaks
 
-    return find_peaks(sign * s, prominence=prominence)[0]
+    found, props = find_peaks(sign * s, prominence=prominence)
+    return found, props["prominences"]
 
 
 def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
-                      surface=None, prominence: float = PROMINENCE_MM) -> dict:
+                      surface=None, prominence: float = PROMINENCE_MM,
+                      notes: dict | None = None) -> dict:
     """Landmarks {name: `Landmark`} on the skin facets ``skin`` (S, 3) over ``points`` (N, 3),
     built on the profile in ``plane`` (module docstring). ``surface``: (facets (B, 3), is_bone
     (B,)) the rest of the boundary; a ray that misses the skin and meets bone first bridges
     the profile (a free crop face or a held one in front of it does not). ``prominence``:
-    how far (mm) a bulge or hollow stands out (`prominence_mm`)."""
+    how far (mm) a bulge or hollow stands out (`prominence_mm`). ``notes`` (a dict, filled):
+    why a landmark the scan seems to hold was left out."""
+    notes = {} if notes is None else notes
     o, a, u = _plane_axes(plane)
     tris = skin[_crossing(points, skin, plane)]
     other, is_bone = (np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=bool)) \
@@ -165,13 +181,16 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     ts = ts[ok][::-1]
     pos = np.array([h[1] @ points[tris[h[0]]] for h in hits])
     s = (pos - o) @ a
-    peaks, hollows = [], []
+    peaks, hollows, depth = [], [], {}
     edge = int(np.ceil(GAP_MM / PROFILE_STEP_MM))   # the rounded rim of a cut or crop face
     for r in np.unique(run):
         idx = np.flatnonzero(run == r)
         for marks, sign in ((peaks, 1.0), (hollows, -1.0)):
-            found_r = _extrema(s[idx], sign, prominence)
-            marks += list(idx[found_r[(found_r >= edge) & (found_r < len(idx) - edge)]])
+            found_r, prom = _extrema(s[idx], sign, prominence)
+            keep = (found_r >= edge) & (found_r < len(idx) - edge)
+            marks += list(idx[found_r[keep]])
+            if sign < 0:
+                depth.update(zip(idx[found_r[keep]], prom[keep]))
     found = {}
 
     def below(i, marks):   # the first mark below index i in i's run
@@ -185,15 +204,19 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     lips = ("Ls", "Li", "Pg")
     if prn in peaks:   # the nose is in the scan: the bulges below it, from the nose down
         found["Prn"] = prn
-        found["N"] = above(prn, hollows)
+        upper = [j for j in hollows if j < prn and run[j] == run[prn]]
+        found["N"] = max(upper, key=depth.get) if upper else None
         chain = [j for j in sorted(peaks) if j > prn and run[j] == run[prn]][:3]
         found.update(zip(lips, chain))
-        end = found.get("Ls", np.flatnonzero(run == run[prn])[-1])
-        between = np.arange(prn + 1, end)
-        if len(between):   # how far behind the chord Prn-Ls, along s
-            chord = s[prn] + (ts[between] - ts[prn]) / (ts[end] - ts[prn]) * (s[end] - s[prn])
-            sn = int(between[np.argmax(chord - s[between])])
-            found["Sn"] = sn if end - sn > edge else None
+        lower = np.flatnonzero((run == run[prn]) & (ts <= ts[prn] - SN_CHORD_MM))
+        ends = [j for j in (found.get("Ls"), lower[0] if len(lower) else None) if j is not None]
+        end = min(ends, default=None)
+        if end is None:
+            notes["Sn"] = (f"the profile ends {ts[prn] - ts[run == run[prn]].min():.1f} mm "
+                           f"below Prn, without Ls (field of view): Sn needs {SN_CHORD_MM:g}")
+        between = np.arange(prn + edge, prn if end is None else end - edge)
+        if len(between):   # the profile's sharpest concave turn
+            found["Sn"] = int(between[np.argmax(_bend(s, ts, prn, end)[between - prn])])
     elif peaks:   # no nose: from the chin up, Pg the lowest bulge
         last = max(peaks)
         chain = [j for j in sorted(peaks, reverse=True) if run[j] == run[last]][:3]
@@ -211,11 +234,11 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
 
 
 def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane, surface=None,
-                   prominence: float = PROMINENCE_MM) -> dict:
-    """Every landmark the scan holds {name: `Landmark`}: the profile's (``surface`` and
-    ``prominence``: as in `profile_landmarks`), and tragion searched above the lowest of Li,
-    Pg and Me that the profile found (module docstring)."""
-    found = profile_landmarks(points, skin, plane, surface, prominence)
+                   prominence: float = PROMINENCE_MM, notes: dict | None = None) -> dict:
+    """Every landmark the scan holds {name: `Landmark`}: the profile's (``surface``,
+    ``prominence`` and ``notes``: as in `profile_landmarks`), and tragion searched above the
+    lowest of Li, Pg and Me that the profile found (module docstring)."""
+    found = profile_landmarks(points, skin, plane, surface, prominence, notes)
     _, _, u = _plane_axes(plane)
     floor = max(((found[k].position(points) - plane.point) @ u for k in ("Li", "Pg", "Me")
                  if k in found), default=-np.inf)
@@ -298,6 +321,15 @@ def _components(mask):
 
     parts, count = ndimage.label(mask)
     return parts, ndimage.sum(mask, parts, index=np.arange(1, count + 1))
+
+
+def _bend(s, ts, i: int, j: int) -> np.ndarray:
+    """d²s/dt² (1/mm) of the profile from sample i to j (j - i + 1,), smoothed over
+    `SN_SMOOTH_MM`: largest where the columella turns into the upper lip."""
+    from scipy import ndimage
+
+    g = ndimage.gaussian_filter1d(s[i:j + 1], SN_SMOOTH_MM / PROFILE_STEP_MM, mode="nearest")
+    return np.gradient(np.gradient(g, ts[i:j + 1]), ts[i:j + 1])
 
 
 def _middle(values, run, i: int, sign: float) -> int:

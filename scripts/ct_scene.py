@@ -144,11 +144,14 @@ def main(argv=None):
             "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
             "min_quality": info["min_quality"], "voxel_mm": info["voxel_mm"],
             "intensity": info.get("intensity"), "metal": info.get("metal"),
+            "landmarks_left_out": info.get("landmarks_left_out", {}),
             **anatomy.head_frame.report(), "cached": info["cached"], "timings_s": timings}
         print(f"{mesh}: {anatomy.n_vertices} vertices, {anatomy.n_cells} tets, segments "
               f"{report['segments']}, landmarks {sorted(report['landmarks'])}, min quality "
               f"{info['min_quality']:.3f}, {timings['total']:.1f} s"
               + (" (cached)" if info["cached"] else ""))
+        for name, why in info.get("landmarks_left_out", {}).items():
+            print(f"landmark {name} left out: {why}")
         if info.get("intensity"):
             print(intensity_line(info["intensity"], info["metal"]))
         tilt = anatomy.head_frame.tilt_deg()

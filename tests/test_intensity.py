@@ -51,12 +51,15 @@ def _cranium():
     return read_volume(CRANIUM_CT)
 
 
-@pytest.mark.parametrize("scan", ["synthetic", "cranium"])
+@pytest.mark.parametrize("scan", ["synthetic", "padded", "cranium"])
 def test_a_scan_in_hu_is_left_as_it_is(scan):
-    """Cranium and the synthetic CT are read as HU: the volume itself comes back."""
+    """Cranium and the synthetic CT are read as HU, the latter also with a third of its
+    voxels padded at -3024 HU (beyond the field of view): the volume itself comes back."""
     from meshes.intensity import calibrated, estimate
 
-    v = _realistic() if scan == "synthetic" else _cranium()
+    v = _realistic() if scan != "cranium" else _cranium()
+    if scan == "padded":
+        v.array[: v.array.shape[0] // 3] = -3024.0
     got = estimate(v)
     assert got.source == "hu", got
     assert calibrated(v, got) is v
@@ -103,14 +106,15 @@ def test_a_volume_without_bone_is_refused_in_one_line():
     assert "\n" not in str(e.value)
 
 
-def _with_brackets(v, hu=8000.0, streak=600.0):
-    """Crowns of enamel (2500 HU: the front bone within 8 mm of its front and 4 mm of its
-    middle height), brackets (3 x 1.5 x 3 mm of ``hu``) on their labial face, and streaks of
-    ±``streak`` HU in the brackets' axial slices: one-voxel lines through each bracket every
-    15 degrees, bright and dark in turn, across the whole slice. Returns (volume, bracket
-    mask, crown mask)."""
+def _with_brackets(v, hu=8000.0, streak=600.0, teeth_hu=None):
+    """Brackets (3 x 1.5 x 3 mm of ``hu``) on the labial face of the front teeth, and streaks
+    of ±``streak`` HU in the brackets' axial slices: one-voxel lines through each bracket
+    every 15 degrees, bright and dark in turn, across the whole slice. The teeth: a real CT's
+    voxels of ``teeth_hu`` and more; else crowns of enamel (2500 HU) made of the front bone
+    within 8 mm of its front and 4 mm of its middle height. Returns (volume, bracket mask,
+    crown mask)."""
     a = v.array.astype(np.float32).copy()
-    ijk = np.argwhere(a > 700)
+    ijk = np.argwhere(a > (700 if teeth_hu is None else teeth_hu))
     xyz = ijk * v.spacing + v.origin
     mid_x = np.median(xyz[:, 0])
     near = np.abs(xyz[:, 0] - mid_x) < 12
@@ -119,13 +123,17 @@ def _with_brackets(v, hu=8000.0, streak=600.0):
     crown = near & (xyz[:, 1] > front[:, 1].max() - 8) & (np.abs(xyz[:, 2] - z) < 4)
     crowns = np.zeros(a.shape, dtype=bool)
     crowns[tuple(ijk[crown].T)] = True
-    a[crowns] = 2500.0
+    if teeth_hu is None:
+        a[crowns] = 2500.0
     mask = np.zeros(a.shape, dtype=bool)
     for dx in (-9.0, -3.0, 3.0, 9.0):
         col = front[(np.abs(front[:, 0] - mid_x - dx) < 1.5) & (np.abs(front[:, 2] - z) < 2)]
+        if not len(col):
+            continue
         c = np.array([mid_x + dx, col[:, 1].max() + 1.0, z])
         lo = np.floor((c - [1.5, 0.75, 1.5] - v.origin) / v.spacing).astype(int)
         hi = np.ceil((c + [1.5, 0.75, 1.5] - v.origin) / v.spacing).astype(int)
+        lo = np.maximum(lo, 0)
         mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True
     a[mask] = hu
     i, j = np.meshgrid(np.arange(a.shape[0]), np.arange(a.shape[1]), indexing="ij")
