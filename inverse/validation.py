@@ -72,17 +72,20 @@ WITHIN_MM = (1.0, 2.0)
 @dataclasses.dataclass
 class Registration:
     """A scan registered to the scene: ``transform`` (4×4, scan -> scene frame),
-    ``residual_mm`` (RMS over the matched stable skin), ``overlap`` (its matched share) and
-    ``n_points`` (the stable skin vertices)."""
+    ``residual_mm`` (RMS over the matched stable skin), ``overlap`` (its matched share),
+    ``n_points`` (the stable skin vertices) and, for a CT, ``condition`` (how well the
+    stable bone determines the fit, `inverse.postop.fit_condition`)."""
 
     transform: np.ndarray
     residual_mm: float
     overlap: float
     n_points: int
+    condition: float | None = None
 
     def report(self) -> dict:
-        return {"transform": self.transform.tolist(), "residual_mm": self.residual_mm,
-                "overlap": self.overlap, "n_points": self.n_points}
+        out = {"transform": self.transform.tolist(), "residual_mm": self.residual_mm,
+               "overlap": self.overlap, "n_points": self.n_points}
+        return out if self.condition is None else {**out, "condition": self.condition}
 
 
 @dataclasses.dataclass

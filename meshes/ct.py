@@ -34,6 +34,7 @@ the pipeline's source.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -65,7 +66,14 @@ from meshes.metal import METAL_HU, reduce_metal
 from meshes.osteotomy import Osteotomies, Plane, resolve_plane_files
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import TEETH_HU, ct_teeth, tag_teeth
-from meshes.tissue import FAT_HU, ct_fat, tissue_fractions, tissue_report
+from meshes.tissue import (
+    FAT_HU,
+    FAT_NOISE_HU,
+    FAT_SMOOTH_VOXELS,
+    ct_fat,
+    tissue_fractions,
+    tissue_report,
+)
 from meshes.volume import Volume, read_volume
 
 log = logging.getLogger(__name__)
@@ -376,7 +384,8 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     t = time.perf_counter()
-    fat = _fat_rule(volume, spec.get("labels"), is_map)
+    fat = _fat_rule(volume, spec.get("labels"), is_map,
+                    None if intensity is None else intensity.noise_hu)
     if fat is not None:
         anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin, fat)
         anatomy.material = "tissues"
@@ -393,11 +402,17 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
     return anatomy, info
 
 
-def _fat_rule(volume: Volume, labels, is_map: bool):
-    """``is_fat`` of `meshes.tissue.tissue_fractions`: by HU on a CT, by the ``"fat"`` label
-    on a label map that names one; None where the scene cannot tell fat (a label map
+def _fat_rule(volume: Volume, labels, is_map: bool, noise_hu: float | None = None):
+    """``is_fat`` of `meshes.tissue.tissue_fractions`: by HU on a CT (smoothed where its
+    soft tissue's noise ``noise_hu`` exceeds `meshes.tissue.FAT_NOISE_HU`), by the ``"fat"``
+    label on a label map that names one; None where the scene cannot tell fat (a label map
     without it)."""
     if not is_map:
+        if noise_hu is not None and noise_hu > FAT_NOISE_HU:
+            from scipy import ndimage
+
+            volume = dataclasses.replace(volume, array=ndimage.gaussian_filter(
+                volume.array.astype(np.float32), FAT_SMOOTH_VOXELS))
         return ct_fat(volume.at)
     if not labels or "fat" not in labels:
         return None

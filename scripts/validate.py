@@ -72,8 +72,8 @@ def _check(args) -> bool:
 
 def _ct_outcome(args, scene, skin, frame, landmarks, comm) -> dict:
     """The post-operative CT's part (rank 0's work, on every rank): ``registration``,
-    ``segments`` ({name: (4×4, residual)} with ``--measure-bone``), the skin surface in the
-    scene's frame (``scan``: points, triangles) and ``timings``. Collective."""
+    ``segments`` ({name: (4×4, residual, condition)} with ``--measure-bone``), the skin
+    surface in the scene's frame (``scan``: points, triangles) and ``timings``. Collective."""
     import time
 
     import numpy as np
@@ -167,7 +167,7 @@ def main(argv=None):
         scan = (apply(reg.transform, scan_points), scan_tris)   # in the scene's frame
         timings["registration"] = time.perf_counter() - t
     if args.measure_bone:
-        p = scene.params_from_transforms({k: T for k, (T, _) in segments.items()})
+        p = scene.params_from_transforms({k: T for k, (T, *_) in segments.items()})
     else:
         p = movements(args, scene)
     warnings = warn_bounds(scene, p, comm)
@@ -190,8 +190,8 @@ def main(argv=None):
               "skin_distance": str(out / "distance.xdmf"),
               "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
               "registration": reg.report(),
-              "segments": {k: {"transform": T.tolist(), "residual_mm": r}
-                           for k, (T, r) in segments.items()},
+              "segments": {k: {"transform": T.tolist(), "residual_mm": r, "condition": c}
+                           for k, (T, r, c) in segments.items()},
               "param_names": scene.param_names, "params": p, **part,
               "iterations": stats.iterations,
               "warnings": warnings + stats.warnings, "timings_s": timings}
@@ -206,7 +206,7 @@ def main(argv=None):
             write_surface(path, after, tris, {"signed_distance_mm": np.where(covered, d, np.nan),
                                               "covered": covered.astype(float)})
     if segments:
-        _write_measured({k: T for k, (T, _) in segments.items()}, out, comm)
+        _write_measured({k: T for k, (T, *_) in segments.items()}, out, comm)
     write_on_root(out / "distance.png", picture if comm.rank == 0 else None, comm)
     write_on_root(out / "distance.xdmf", xdmf if comm.rank == 0 else None, comm)
     timings["total"] = time.perf_counter() - t0
@@ -218,8 +218,8 @@ def main(argv=None):
               f"overlap {reg.overlap:.0%}); the prediction against the outcome over "
               f"{e['n_vertices']} vertices: mean {e['mean']:.2f} mm, median {e['median']:.2f}, "
               f"p90 {e['p90']:.2f}, within 2 mm {e['within_2mm']:.0%}")
-        for name, (_, r) in segments.items():
-            print(f"  {name:10s} measured, residual {r:.2f} mm")
+        for name, (_, r, c) in segments.items():
+            print(f"  {name:10s} measured, residual {r:.2f} mm, condition {c:.1f}")
         for name, r in report["regions"].items():
             print(f"  {name:10s} mean {r['mean']:.2f} mm, within 2 mm {r['within_2mm']:.0%}")
         for name, v in report["landmarks"].items():
