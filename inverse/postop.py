@@ -168,9 +168,7 @@ def _near_metal(volume: Volume, box) -> np.ndarray:
     if not metal.any():
         return metal
     r = np.ceil(METAL_MARGIN_MM / volume.spacing).astype(int)
-    return ndimage.binary_dilation(metal, np.ones(2 * r + 1, dtype=bool).reshape(-1, 1, 1)
-                                   & np.ones(2 * r[1] + 1, dtype=bool).reshape(1, -1, 1)
-                                   & np.ones(2 * r[2] + 1, dtype=bool).reshape(1, 1, -1))
+    return ndimage.maximum_filter(metal, size=tuple(2 * r + 1))   # a box, axis by axis
 
 
 def register_volumes(fixed: Volume, moving: Volume, mask: np.ndarray,
@@ -483,7 +481,7 @@ def simulated_postop(scene, p: np.ndarray, pre: Volume, cuts, misplace: np.ndarr
     """`synthetic_postop` of a CT scene (`inverse.scene.Scene` made by ``ct_scene.py`` from
     ``pre`` with the osteotomies ``cuts``, `meshes.osteotomy.Osteotomies`): its outcome at p
     (P,), which the scene is left at. Collective; every rank gets the volume."""
-    from meshes.osteotomy import Plane
+    from meshes.plane import Plane
 
     dom = scene.domain
     every = dom.vertex_operator(np.arange(dom.n_vertices))

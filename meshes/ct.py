@@ -63,7 +63,8 @@ from meshes.frame import estimate_on_scan, from_spec
 from meshes.intensity import read_ct
 from meshes.landmarks import prominence_mm, skin_landmarks
 from meshes.metal import METAL_HU, reduce_metal
-from meshes.osteotomy import Osteotomies, Plane, resolve_plane_files
+from meshes.osteotomy import Osteotomies, resolve_plane_files
+from meshes.plane import Plane
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import TEETH_HU, ct_teeth, tag_teeth
 from meshes.tissue import (
@@ -146,6 +147,7 @@ def _code_digest() -> str:
         landmarks,
         metal,
         osteotomy,
+        plane,
         segment,
         teeth,
         tissue,
@@ -153,8 +155,8 @@ def _code_digest() -> str:
     )
 
     h = hashlib.sha1()
-    for module in (anatomy, frame, intensity, landmarks, metal, osteotomy, segment, teeth,
-                   tissue, volume):
+    for module in (anatomy, frame, intensity, landmarks, metal, osteotomy, plane, segment,
+                   teeth, tissue, volume):
         h.update(Path(module.__file__).read_bytes())
     h.update(Path(__file__).read_bytes())
     return h.hexdigest()
@@ -473,7 +475,7 @@ def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool =
                landmarks=None):
     """(Anatomy, info): `build`, from the cache when the same input and options were meshed
     before (info then has ``cached: True`` and the original timings). ``landmarks``: a file
-    (`meshes.landmarks.read_landmark_file`) whose points replace or add to the built ones."""
+    (`meshes.markups.read_landmark_file`) whose points replace or add to the built ones."""
     from meshes.external import attach_landmarks, read_occlusion
 
     ct_path, scene_file = Path(ct_path), Path(scene_file)
@@ -504,7 +506,7 @@ def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool =
         info["cached"] = False
     anatomy.occlusion = read_occlusion(spec.get("occlusion"), scene_file)
     if landmarks is not None:
-        from meshes.landmarks import read_landmark_file
+        from meshes.markups import read_landmark_file
 
         tol = max(float(np.linalg.norm(info["voxel_mm"])), 0.5)
         attach_landmarks(anatomy, read_landmark_file(landmarks), tol)

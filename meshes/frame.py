@@ -239,13 +239,13 @@ def from_spec(spec, scene_file) -> HeadFrame:
     (module docstring)."""
     where = f"{scene_file}: frame"
     if isinstance(spec, str):
-        from meshes.landmarks import read_landmark_file
+        from meshes.markups import read_landmark_file
 
         return from_points(read_landmark_file(Path(scene_file).parent / spec), where)
     if isinstance(spec, dict) and "matrix" in spec:
         return from_matrix(spec["matrix"], where)
     if isinstance(spec, dict) and {"midsagittal", "horizontal"} & set(spec):
-        from meshes.osteotomy import Plane
+        from meshes.plane import Plane
 
         if set(spec) != {"midsagittal", "horizontal"}:
             raise MeshError(f"{where}: give both planes 'midsagittal' and 'horizontal', and "

@@ -48,22 +48,19 @@ from the mid-sagittal plane, every `EAR_BIN_MM` forward and up.
 Without an ear and its canal (the synthetic heads, a crop in front of the ears) the landmark
 is absent.
 
-Files: ``{name: [x, y, z]}`` (mm, the scene's frame) or a 3D Slicer markups file
-(``.mrk.json``; points in RAS or LPS as its ``coordinateSystem`` says) override the built ones;
-each point is projected onto the nearest skin facet and must lie within the tolerance.
+Files (`meshes.markups.read_landmark_file`): ``{name: [x, y, z]}`` (mm, the scene's frame)
+or a 3D Slicer markups file (``.mrk.json``; points in RAS or LPS as its ``coordinateSystem``
+says) override the built ones; each point is projected onto the nearest skin facet and must
+lie within the tolerance.
 """
 
 from __future__ import annotations
-
-import json
-from pathlib import Path
 
 import numpy as np
 
 from meshes.anatomy import Landmark, intersect_rays
 from meshes.errors import MeshError
-from meshes.markups import markup_points, read_markups
-from meshes.osteotomy import Plane
+from meshes.plane import Plane
 
 PROFILE_STEP_MM = 0.5
 PROMINENCE_MM = 0.5
@@ -360,15 +357,3 @@ def _menton(points, tris, o, a, u, s_pg, t_pg):
     run = np.cumsum(~np.isfinite(ts))
     i = _middle(np.where(np.isfinite(ts), ts, 1e9), run, int(np.argmin(ts)), -1.0)
     return Landmark(tris[hits[i][0]].copy(), hits[i][1].copy())
-
-
-def read_landmark_file(path) -> dict:
-    """Points {name: (3,)} mm in the scene's frame from a JSON ``{name: [x, y, z]}`` or a
-    3D Slicer markups file (``.mrk.json``, `meshes.markups`)."""
-    markups = read_markups(path)
-    if markups is not None:
-        return markup_points(path, markups)
-    spec = json.loads(Path(path).read_text())
-    if not isinstance(spec, dict):
-        raise MeshError(f"{path}: expected {{name: [x, y, z]}} or a 3D Slicer markups file")
-    return {k: np.asarray(v, float) for k, v in spec.items()}

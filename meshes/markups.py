@@ -89,3 +89,15 @@ def markup_planes(path) -> dict:
     if not out:
         raise MeshError(f"{path} holds no Plane markup")
     return out
+
+
+def read_landmark_file(path) -> dict:
+    """Points {name: (3,)} mm in the scene's frame from a JSON ``{name: [x, y, z]}`` or a
+    3D Slicer markups file (``.mrk.json``, `meshes.markups`)."""
+    markups = read_markups(path)
+    if markups is not None:
+        return markup_points(path, markups)
+    spec = json.loads(Path(path).read_text())
+    if not isinstance(spec, dict):
+        raise MeshError(f"{path}: expected {{name: [x, y, z]}} or a 3D Slicer markups file")
+    return {k: np.asarray(v, float) for k, v in spec.items()}

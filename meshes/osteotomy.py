@@ -33,6 +33,7 @@ import numpy as np
 
 from meshes.anatomy import FIXED, FREE_BONE, SEGMENT_TAG0
 from meshes.errors import MeshError
+from meshes.plane import Plane
 
 SEGMENTS = ("mandible", "maxilla_L", "maxilla_R")
 SEGMENT_TAGS = {name: SEGMENT_TAG0 + i for i, name in enumerate(SEGMENTS)}
@@ -42,39 +43,6 @@ BAND_MM, SPLIT_MM = 10.0, 15.0
 #: has no side, so its normal is turned to this one.
 NORMAL_AXIS = {"lefort1": 2, "occlusal": 2, "midsagittal": 0, "ramus_L": 1, "ramus_R": 1,
                "pterygomaxillary": 1}
-
-
-@dataclasses.dataclass(frozen=True)
-class Plane:
-    """A plane through ``point`` (3,) mm with unit ``normal`` (3,)."""
-
-    point: tuple
-    normal: tuple
-
-    @classmethod
-    def of(cls, name: str, spec) -> "Plane":
-        """A plane from ``{"point": [x, y, z], "normal": [nx, ny, nz]}``."""
-        try:
-            p, n = (np.asarray(spec[k], dtype=float) for k in ("point", "normal"))
-        except (KeyError, TypeError, ValueError):
-            raise MeshError(f"osteotomy {name!r}: expected {{\"point\": [x, y, z], "
-                            f"\"normal\": [nx, ny, nz]}} in mm, got {spec!r}") from None
-        if p.shape != (3,) or n.shape != (3,) or not np.all(np.isfinite(np.r_[p, n])) \
-                or np.linalg.norm(n) == 0:
-            raise MeshError(f"osteotomy {name!r}: point and normal must be 3 finite numbers, "
-                            f"the normal non-zero; got {spec!r}")
-        return cls(tuple(p), tuple(n / np.linalg.norm(n)))
-
-    def distance(self, x: np.ndarray) -> np.ndarray:
-        """Signed distances (K,) mm of points x (K, 3)."""
-        return (np.asarray(x, float) - self.point) @ np.asarray(self.normal)
-
-
-def axis_plane(axis: int, value: float) -> Plane:
-    """The plane ``x[axis] = value`` with the normal along +axis."""
-    p, n = np.zeros(3), np.zeros(3)
-    p[axis], n[axis] = value, 1.0
-    return Plane(tuple(p), tuple(n))
 
 
 def resolve_plane_files(spec: dict, folder) -> dict:

@@ -44,7 +44,8 @@ from meshes.anatomy import (
     signed_volumes,
 )
 from meshes.errors import InputError, MeshError
-from meshes.osteotomy import BAND_MM, SEGMENT_TAGS, SPLIT_MM, Osteotomies, axis_plane
+from meshes.osteotomy import BAND_MM, SEGMENT_TAGS, SPLIT_MM, Osteotomies
+from meshes.plane import axis_plane
 from meshes.teeth import CROWN_MM, VESTIBULE_MM, tag_teeth
 from meshes.tissue import FAT_HU, SKIN_MM, tissue_fractions
 

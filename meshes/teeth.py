@@ -80,7 +80,7 @@ def ct_teeth(hu_at, mid: np.ndarray, normals: np.ndarray, voxel_mm: float,
     """Teeth (B,) bool of facets with midpoints ``mid`` (B, 3) and outward normals (out of
     the tissue, into the bone) ``normals`` (B, 3), mm: `TEETH_HU` reached by ``hu_at``
     (points (K, 3) -> HU (K,)) at `INSIDE_VOXELS` of ``voxel_mm`` into the bone, and within
-    `OCCLUSAL_MM` of the ``occlusal`` plane (`meshes.osteotomy.Plane`) where it is given."""
+    `OCCLUSAL_MM` of the ``occlusal`` plane (`meshes.plane.Plane`) where it is given."""
     hu = np.max([hu_at(mid + k * voxel_mm * normals) for k in INSIDE_VOXELS], axis=0)
     teeth = hu >= TEETH_HU
     if occlusal is not None:

@@ -52,7 +52,7 @@ def _settings(tmp_path, hand: str):
 
 def _angle_distance(a: dict, b: dict) -> tuple:
     """(degrees between the planes' normals, mm from plane a to b's point)."""
-    from meshes.osteotomy import Plane
+    from meshes.plane import Plane
 
     pa, pb = Plane.of("a", a), Plane.of("b", b)
     cos = min(1.0, abs(float(np.dot(pa.normal, pb.normal))))
