@@ -59,7 +59,7 @@ FOV_PAD_HU = -2000.0
 #: registrations' metrics: the post-operative CT has plates the pre-operative one has not.
 #: Plates and screws of 8000 HU across a hostile post-operative Cranium's LeFort I cut
 #: (`tests/hostile_postop.py`) put the halves' measurement 0.26 and 0.53 mm RMS off with
-#: them in the metric, 0.05 and 0.12 mm without. A 1 mm titanium plate saturated at 3071 HU
+#: them in the metric, 0.10 and 0.07 mm without. A 1 mm titanium plate saturated at 3071 HU
 #: and blurred by the scan reads below `meshes.metal.METAL_HU` and stays in (0.10-0.17 mm).
 METAL_MARGIN_MM = 2.0
 #: A post-operative CT is mirrored when its mirror image's residual on the stable bone is
