@@ -210,7 +210,7 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
         end = min(ends, default=None)
         if end is None:
             notes["Sn"] = (f"the profile ends {ts[prn] - ts[run == run[prn]].min():.1f} mm "
-                           f"below Prn, without Ls (field of view): Sn needs {SN_CHORD_MM:g}")
+                           f"below Prn, without Ls (field of view): Sn needs {SN_CHORD_MM:g} mm")
         between = np.arange(prn + edge, prn if end is None else end - edge)
         if len(between):   # the profile's sharpest concave turn
             found["Sn"] = int(between[np.argmax(_bend(s, ts, prn, end)[between - prn])])

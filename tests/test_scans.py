@@ -217,3 +217,18 @@ def test_cranium_moved_on_the_voxel_grid_predicts_the_same(tmp_path, resolution)
             assert np.linalg.norm(rest[k] - t - rest0[k]) <= _voxel(v), (voxels, k)
             d = np.linalg.norm(motion[k] - motion0[k])
             assert d <= MOTION_MM[resolution], (voxels, k, motion[k], motion0[k])
+
+
+@needs_cranium
+def test_a_landmark_the_view_cuts_is_left_out_with_its_reason(tmp_path):
+    """Cranium cropped 17.5 mm below Prn (no Ls): Sn is left out and the report says why;
+    the default goal that needs it is refused in one line."""
+    spec = json.loads((EXAMPLES / "cranium.json").read_text())
+    spec["crop"]["min"][2] = 15.0
+    rep = _scene(tmp_path / "short", CRANIUM, spec, "coarse")
+    assert "Sn" not in rep["landmarks"] and {"N", "Prn"} <= set(rep["landmarks"])
+    assert "field of view" in rep["landmarks_left_out"]["Sn"], rep["landmarks_left_out"]
+    r = _run([sys.executable, str(ROOT / "scripts" / "plan.py"), "--mesh", rep["mesh"],
+              "--goal", "midface-advance", "--params-used", "maxilla.advance_mm", "--out",
+              str(tmp_path / "plan")])
+    _one_line_error(r, "Sn")
