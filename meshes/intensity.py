@@ -142,6 +142,9 @@ def estimate(volume: Volume) -> Intensity:
     v = v[v <= np.percentile(v, 99.9)]   # metal and its streaks off the histogram's scale
     if v.min() == v.max():
         raise MeshError(f"no body found in {volume.name}: it holds one value, {v.min():g}")
+    if len(np.unique(v)) < 3:
+        raise MeshError(f"{volume.name} has no bone class in its histogram: it holds two values "
+                        f"({v.min():g}, {v.max():g}); is it a head CT?")
     split, top = threshold_multiotsu(v, classes=3)
     low = v[v <= split]
     air, _ = _mode(low)
@@ -166,11 +169,11 @@ def estimate(volume: Volume) -> Intensity:
         and v.min() <= tol["air_max"]
     if is_hu:
         return Intensity("hu", classes, ([0.0, 1.0], [0.0, 1.0]), noise)
-    scale = (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])   # HU per scan unit at soft tissue
+    scale = (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])   # HU per scan unit (the upper segment)
     return Intensity("estimated", classes, (xp, fp), noise * scale)
 
 
-def as_given(volume: Volume) -> Intensity:
+def as_given() -> Intensity:
     """The identity map: the values are taken as they are (``"calibration": "none"``)."""
     return Intensity("given", {}, ([0.0, 1.0], [0.0, 1.0]), None)
 
@@ -188,5 +191,5 @@ def read_ct(path, calibration: str = "auto") -> tuple:
     if calibration not in ("auto", "none"):
         raise MeshError(f"calibration: expected 'auto' or 'none', got {calibration!r}")
     volume = read_volume(path)
-    intensity = estimate(volume) if calibration == "auto" else as_given(volume)
+    intensity = estimate(volume) if calibration == "auto" else as_given()
     return calibrated(volume, intensity), intensity

@@ -104,6 +104,9 @@ def test_a_volume_without_bone_is_refused_in_one_line():
     with pytest.raises(MeshError, match="no bone class") as e:
         estimate(_remapped(dataclasses.replace(v, array=a), "cbct"))
     assert "\n" not in str(e.value)
+    two = np.where(v.array > -500, 40.0, -1000.0).astype(np.float32)   # air and tissue only
+    with pytest.raises(MeshError, match="no bone class"):
+        estimate(dataclasses.replace(v, array=two))
 
 
 def _with_brackets(v, hu=8000.0, streak=600.0, teeth_hu=None):
