@@ -9,7 +9,10 @@ docs/validation.md).
    mean squares on HU, three resolutions (`register_volumes`). Its residual
    (`bone_residual`) is a distance: the scene's bone surface moved by the registration,
    against the post-operative CT's bone surface at the same HU. A registration whose
-   residual exceeds `RESIDUAL_MAX_MM` failed: a one-line error, never a number in a report.
+   residual exceeds `RESIDUAL_MAX_MM` failed: a one-line error, never a number in a report;
+   so is a post-operative CT whose mirror image fits better (`MIRROR_RATIO`). Metal (plates,
+   screws) is left out of both images' metrics (`METAL_MARGIN_MM`), and each fit reports its
+   `fit_condition`.
 2. **How each segment moved** (`measure_bone`): its own bone facets' shell registered the
    same way, from the stable registration: its motion in the scene's frame (4×4, the
    modelling convention of `meshes.transforms`) and its residual.
@@ -336,10 +339,11 @@ def mirrored(volume: Volume, x_plane: float) -> Volume:
 
 
 def _not_mirrored(pre, post, stable, mask, residual: float, frame) -> None:
-    """`MeshError` when the post-operative CT mirrored about the head's mid-sagittal plane
-    fits the stable bone better than itself by `MIRROR_RATIO`: a left-right flipped scan
-    (a wrong orientation in its header), which a rigid registration cannot undo and a
-    nearly symmetric skull fits within `RESIDUAL_MAX_MM`."""
+    """`MeshError` when the post-operative CT mirrored left-right (about the scanner's
+    sagittal plane through the head frame's origin) fits the stable bone better than itself
+    by `MIRROR_RATIO`: a flipped scan (a wrong orientation in its header), which a rigid
+    registration cannot undo and a nearly symmetric skull fits within `RESIDUAL_MAX_MM`. A
+    mirror image that does not register (a head yawed far in the scanner) says nothing."""
     flipped = mirrored(post, float(frame.origin[0]))
     try:
         T = register_volumes(pre, flipped, mask)
