@@ -34,7 +34,6 @@ the pipeline's source.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import hashlib
 import json
 import logging
@@ -67,14 +66,7 @@ from meshes.osteotomy import Osteotomies, resolve_plane_files
 from meshes.plane import Plane
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import TEETH_HU, ct_teeth, tag_teeth
-from meshes.tissue import (
-    FAT_HU,
-    FAT_NOISE_HU,
-    FAT_SMOOTH_VOXELS,
-    ct_fat,
-    tissue_fractions,
-    tissue_report,
-)
+from meshes.tissue import FAT_HU, ct_fat, tissue_fractions, tissue_report
 from meshes.volume import Volume, read_volume
 
 log = logging.getLogger(__name__)
@@ -140,24 +132,12 @@ def _digest(path: Path) -> str:
 def _code_digest() -> str:
     """The pipeline's own source: a cached scene is rebuilt when the code that made it
     changes (the synthetic heads bump `GENERATOR_VERSION` by hand; here no hand is needed)."""
-    from meshes import (
-        anatomy,
-        frame,
-        intensity,
-        landmarks,
-        metal,
-        osteotomy,
-        plane,
-        segment,
-        teeth,
-        tissue,
-        volume,
-    )
+    import importlib
 
     h = hashlib.sha1()
-    for module in (anatomy, frame, intensity, landmarks, metal, osteotomy, plane, segment,
-                   teeth, tissue, volume):
-        h.update(Path(module.__file__).read_bytes())
+    for name in ("anatomy", "frame", "intensity", "landmarks", "metal", "osteotomy", "plane",
+                 "segment", "teeth", "tissue", "volume"):
+        h.update(Path(importlib.import_module(f"meshes.{name}").__file__).read_bytes())
     h.update(Path(__file__).read_bytes())
     return h.hexdigest()
 
@@ -405,17 +385,11 @@ def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = Fals
 
 
 def _fat_rule(volume: Volume, labels, is_map: bool, noise_hu: float | None = None):
-    """``is_fat`` of `meshes.tissue.tissue_fractions`: by HU on a CT (smoothed where its
-    soft tissue's noise ``noise_hu`` exceeds `meshes.tissue.FAT_NOISE_HU`), by the ``"fat"``
-    label on a label map that names one; None where the scene cannot tell fat (a label map
-    without it)."""
+    """``is_fat`` of `meshes.tissue.tissue_fractions`: by HU on a CT (`meshes.tissue.ct_fat`,
+    its soft tissue's noise ``noise_hu``), by the ``"fat"`` label on a label map that names
+    one; None where the scene cannot tell fat (a label map without it)."""
     if not is_map:
-        if noise_hu is not None and noise_hu > FAT_NOISE_HU:
-            from scipy import ndimage
-
-            volume = dataclasses.replace(volume, array=ndimage.gaussian_filter(
-                volume.array.astype(np.float32), FAT_SMOOTH_VOXELS))
-        return ct_fat(volume.at)
+        return ct_fat(volume, noise_hu)
     if not labels or "fat" not in labels:
         return None
     values = np.atleast_1d(labels["fat"])

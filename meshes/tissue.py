@@ -104,9 +104,18 @@ def tissue_fractions(points: np.ndarray, cells: np.ndarray, skin: np.ndarray,
     return classes.mean(axis=1)
 
 
-def ct_fat(hu_at):
-    """``is_fat`` of a CT whose HU ``hu_at`` gives at points (K, 3) mm."""
-    return lambda x: np.asarray(hu_at(x), dtype=float) <= FAT_HU
+def ct_fat(volume, noise_hu: float | None = None):
+    """``is_fat`` of a CT (`meshes.volume.Volume`, HU) at points (K, 3) mm: its nearest
+    voxel's HU, after a Gaussian of `FAT_SMOOTH_VOXELS` where the soft tissue's noise
+    ``noise_hu`` exceeds `FAT_NOISE_HU`."""
+    if noise_hu is not None and noise_hu > FAT_NOISE_HU:
+        import dataclasses
+
+        from scipy import ndimage
+
+        volume = dataclasses.replace(volume, array=ndimage.gaussian_filter(
+            volume.array.astype(np.float32), FAT_SMOOTH_VOXELS))
+    return lambda x: np.asarray(volume.at(x), dtype=float) <= FAT_HU
 
 
 def tissue_report(anatomy) -> dict | None:
