@@ -189,14 +189,6 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
             if sign < 0:
                 depth.update(zip(idx[found_r[keep]], prom[keep]))
     found = {}
-
-    def below(i, marks):   # the first mark below index i in i's run
-        return next((j for j in sorted(marks) if j > i and run[j] == run[i]), None)
-
-    def above(i, marks):
-        return next((j for j in sorted(marks, reverse=True) if j < i and run[j] == run[i]),
-                    None)
-
     prn = int(np.argmax(s))
     lips = ("Ls", "Li", "Pg")
     if prn in peaks:   # the nose is in the scan: the bulges below it, from the nose down
