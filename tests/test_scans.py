@@ -69,8 +69,9 @@ def _same_scene(got: dict, want: dict, voxel: float, names: set):
 
 
 @pytest.fixture(scope="module")
-def cranium_paper(tmp_path_factory):
-    """Cranium.inv3 in HU at paper through ct_scene.py: its report."""
+def cranium_paper(tmp_path_factory, cache):  # noqa: F811 (the fixture, imported above)
+    """Cranium.inv3 in HU at paper through ct_scene.py, in the module's fresh cache: its
+    report."""
     if not CRANIUM.exists():
         pytest.skip(f"{CRANIUM} is absent (Debian's invesalius-examples)")
     spec = json.loads((EXAMPLES / "cranium.json").read_text())
