@@ -68,7 +68,7 @@ def reduce_metal(volume: Volume) -> tuple:
     a = volume.array.astype(np.float32)   # a copy
     nz = a.shape[2]
     slices = ndimage.binary_dilation(metal.any(axis=(0, 1)), iterations=STREAK_SLICES)
-    replaced, ranges = 0, []
+    replaced, ranges, z = 0, [], volume.centres(2)
     for k0, k1 in _runs(slices):
         below, above = k0 - 1, k1 + 1
         if below < 0 and above >= nz:
@@ -83,7 +83,6 @@ def reduce_metal(volume: Volume) -> tuple:
         streak = (np.abs(part - interp) > STREAK_HU) & ~metal[:, :, k0:k1 + 1]
         part[streak] = interp[streak]
         replaced += int(streak.sum())
-        z = volume.centres(2)
         ranges.append([round(float(z[k0]), 2), round(float(z[k1]), 2)])
     enamel_mm3 = float(((volume.array >= TEETH_HU) & ~metal).sum()) * voxel
     a[metal] = FILL_HU
