@@ -5,7 +5,8 @@ PY := $(VENV)/bin/python
 DEB_PKGS := python3-dolfinx-real python3-gmsh python3-meshio python3-mpi4py python3-petsc4py \
             libopenblas0-pthread mpi-default-bin python3-venv python3-matplotlib python3-scipy \
             python3-pygalmesh python3-skimage invesalius-examples \
-            python3-fastapi python3-uvicorn chromium chromium-driver python3-selenium
+            python3-fastapi python3-uvicorn chromium chromium-driver python3-selenium \
+            paraview python3-paraview xvfb
 export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 
@@ -50,7 +51,8 @@ explore: install
 	@test -f $(PLAN) || $(PY) scripts/demo.py
 	$(PY) scripts/explore_web.py --plan-report $(PLAN)
 
-# Every tier (tests/conftest.py): unit, integration on the tiny heads, scripts, browser; a
+# Every tier (tests/conftest.py): unit, integration on the tiny heads, scripts, browser,
+# clients (ParaView); a
 # pytest-xdist worker per core, each test module on one worker (its fixtures built once).
 test: install
 	$(PY) -m ruff check .

@@ -126,16 +126,47 @@ class Domain:
         ``vertices`` (from `boundary_vertices` of the same tags). Collective."""
         from meshes.anatomy import SKIN
 
-        facets = self.facet_tags.indices[np.isin(self.facet_tags.values,
-                                                 [SKIN] if tags is None else list(tags))]
+        tri, _ = self.tagged_triangles([SKIN] if tags is None else tags)
+        return np.searchsorted(vertices, tri)
+
+    def tagged_triangles(self, tags=None) -> tuple[np.ndarray, np.ndarray]:
+        """The tagged facets with ``tags`` (default: all): triangles (F, 3) as original vertex
+        indices, oriented out of the tissue, and their tags (F,); sorted, the same on every
+        rank whatever the partition. Collective."""
+        keep = (np.ones(len(self.facet_tags.values), bool) if tags is None
+                else np.isin(self.facet_tags.values, list(tags)))
+        facets = self.facet_tags.indices[keep]
         # oriented out of the tissue (dolfinx orients boundary facets), for smooth shading
         nodes = _cpp.mesh.entities_to_geometry(compat.cpp_mesh(self.mesh), 2, facets, True)
         glob = np.asarray(self.mesh.geometry.input_global_indices, dtype=np.int64)[nodes]
         tri = np.concatenate(self.comm.allgather(glob.reshape(-1, 3)))
+        tag = np.concatenate(self.comm.allgather(self.facet_tags.values[keep]))
         start = tri.argmin(axis=1)   # the same on any ranks: the lowest vertex first
         tri = tri[np.arange(len(tri))[:, None], (start[:, None] + np.arange(3)) % 3]
-        tri = np.unique(tri, axis=0)   # ghost facets, gathered twice
-        return np.searchsorted(vertices, tri)
+        tri, first = np.unique(tri, axis=0, return_index=True)   # ghosts, gathered twice
+        return tri, tag[first]
+
+    def vertex_array(self, block_values: np.ndarray, root: int = 0) -> np.ndarray | None:
+        """Values at the mesh's vertices (n_vertices, k) in the original order, on ``root``
+        (None elsewhere), from per-dof-block values (n_local_nodes, k), or their flat array
+        (P2 edge midpoints are dropped). Collective."""
+        vals = np.asarray(block_values).reshape(len(self.node_key), -1)[:self.n_owned]
+        index = self.input_index[:self.n_owned]
+        return _on_root(self.comm, index[index >= 0], vals[index >= 0], self.n_vertices, root)
+
+    def cell_array(self, cell_values: np.ndarray | None = None,
+                   root: int = 0) -> np.ndarray | None:
+        """Values of the cells (n_cells, k) in the original order, on ``root`` (None
+        elsewhere), from per-local-cell values (n_local_cells, k); by default the cells'
+        original vertex indices (n_cells, 4). Collective."""
+        n = self.mesh.topology.index_map(3).size_local
+        if cell_values is None:
+            nodes = self.mesh.geometry.dofmap.array.reshape(-1, 4)[:n]
+            cell_values = np.asarray(self.mesh.geometry.input_global_indices,
+                                     dtype=np.int64)[nodes]
+        vals = np.asarray(cell_values)[:n].reshape(n, -1)
+        index = np.asarray(self.mesh.topology.original_cell_index, dtype=np.int64)[:n]
+        return _on_root(self.comm, index, vals, self.n_cells, root)
 
     def vertex_operator(self, vertices) -> "PointOperator":
         """Point operator for mesh vertices given by original index (K,)."""
@@ -198,6 +229,18 @@ class PointOperator:
         """out += L^T g, for g (Nt, 3), into a local blocked array (owned part)."""
         o = out_array.reshape(-1, 3)
         np.add.at(o, self.block, self.weight[:, None] * g[self.point])
+
+
+def _on_root(comm: MPI.Comm, index: np.ndarray, values: np.ndarray, n: int, root: int):
+    """The rows ``values`` (K, k) each rank holds at ``index`` (K,), placed in one (n, k)
+    array on ``root``; None elsewhere."""
+    parts = comm.gather((index, values), root=root)
+    if comm.rank != root:
+        return None
+    out = np.zeros((n, values.shape[1]), dtype=values.dtype)
+    for i, v in parts:
+        out[i] = v
+    return out
 
 
 #: Edges of the reference tetrahedron (basix order): the P2 edge dofs follow the vertices.
@@ -273,12 +316,3 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
     if tissues is not None:
         tissues = tissues[np.asarray(mesh.topology.original_cell_index)]
     return Domain(mesh, ft, V, X, node_key, node_of_block, tissues=tissues, **meta)
-
-
-def node_values(domain: Domain, block_values: np.ndarray) -> np.ndarray:
-    """Per-geometry-node array (n_nodes, 3) from per-dof-block values (n_blocks, 3) (the
-    vertex values; P2 edge midpoints are dropped)."""
-    out = np.zeros((len(domain.mesh.geometry.x), 3))
-    vertex = domain.node_of_block >= 0
-    out[domain.node_of_block[vertex]] = block_values.reshape(-1, 3)[vertex]
-    return out

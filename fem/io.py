@@ -94,28 +94,22 @@ def write_npz(path, arrays: dict, comm: MPI.Comm = MPI.COMM_WORLD) -> None:
     write_on_root(path, write, comm)
 
 
-def write_xdmf(path, mesh, functions=(), meshtags=(), node_displacement=None,
-               comm: MPI.Comm | None = None) -> None:
-    """Write ``mesh`` (optionally moved by ``node_displacement`` (n_nodes, 3) mm, given per
-    geometry node) with functions and mesh tags to ``path`` (.xdmf + .h5), atomically."""
-    import dolfinx.io
+def write_grid(path, points, cells, point_data=None, cell_data=None,
+               comm: MPI.Comm = MPI.COMM_WORLD) -> None:
+    """One unstructured grid to ``path`` (.xdmf with its .h5, or .vtu), atomically, as ParaView's
+    default reader for the suffix opens it (docs/decisions.md, "Files for ParaView").
 
-    comm = comm or mesh.comm
-    path = Path(path)
-    x = mesh.geometry.x
-    if node_displacement is not None:
-        x[:, :3] += node_displacement
-    try:
-        with _staged(path, comm) as tmp, \
-                dolfinx.io.XDMFFile(comm, str(tmp / path.name), "w") as f:
-            f.write_mesh(mesh)
-            for tags in meshtags:
-                f.write_meshtags(tags)
-            for fn in functions:
-                f.write_function(fn)
-    finally:
-        if node_displacement is not None:
-            x[:, :3] -= node_displacement
+    Args: (rank 0's; other ranks may pass None) points (N, 3) mm; cells: (cell type, (C, m)
+    vertex indices), e.g. ``("tetra", tets)``; point_data / cell_data: ``{name: (N,) or (N, 3)}``
+    / ``{name: (C,)}``.
+    """
+    def write(p):
+        import meshio
+
+        meshio.write(str(p), meshio.Mesh(
+            np.asarray(points, float), [cells], point_data=dict(point_data or {}),
+            cell_data={k: [np.asarray(v)] for k, v in (cell_data or {}).items()}))
+    write_on_root(path, write, comm)
 
 
 def write_text(path, text: str, comm: MPI.Comm = MPI.COMM_WORLD) -> None:

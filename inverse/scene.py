@@ -11,14 +11,12 @@ from mpi4py import MPI
 
 import time
 
-import dolfinx
 import numpy as np
 
-from fem import compat
-from fem.domain import create_domain, node_values
+from fem.domain import create_domain
 from fem.equilibrium import Equilibrium, SolveStats
 from fem.forms import DEFAULT_PENALTY
-from fem.io import write_xdmf
+from fem.io import write_grid
 from fem.material import NeoHookean, Tissues, material_from_spec
 from fem.policy import EquilibriumOptions
 from inverse.treatment import Treatment, rigid_treatment
@@ -172,10 +170,14 @@ class Scene:
         """Report keys of the current equilibrium's bone motions: ``transforms`` {segment:
         4×4} and ``occlusion`` (4×4, or None when the jaws are free), both in the scene's
         frame, the head frame they were built in (`meshes.frame.HeadFrame.report`), and
-        ``contact`` (how the tissue held to the teeth)."""
+        ``contact`` (how the tissue held to the teeth), and ``displacement_max_mm``, the
+        largest displacement at a vertex (the top of ParaView's colour bar). Collective."""
+        dom = self.domain
+        u = self.eq.u.x.array.reshape(-1, 3)[:dom.n_owned][dom.input_index[:dom.n_owned] >= 0]
+        top = dom.comm.allreduce(float(np.linalg.norm(u, axis=1).max(initial=0.0)), op=MPI.MAX)
         return {"transforms": self.transforms(), "occlusion": self.treatment.occlusion,
                 "contact": self.contact, "material": self.material,
-                **self.head_frame.report()}
+                "displacement_max_mm": top, **self.head_frame.report()}
 
     def params_from_transforms(self, transforms: dict) -> np.ndarray:
         """The parameters (Np,) that move the segments by ``transforms`` ({segment: 4×4};
@@ -198,21 +200,41 @@ class Scene:
         return self.eq.active_goal_error()
 
     def write(self, out_dir) -> list[str]:
-        """Write ``displacement.xdmf`` (rest mesh + u) and ``deformed.xdmf`` (deformed mesh
-        with facet tags) into ``out_dir``, atomically. Returns the file names."""
+        """ParaView's files into ``out_dir``, atomically; each is one grid that ParaView's
+        default reader opens with its arrays (docs/decisions.md, "Files for ParaView"):
+
+        * ``displacement.xdmf``: the rest volume with ``displacement`` (mm) at its vertices
+          (*Warp By Vector* shows the deformed volume) and the tissue fractions of its cells;
+        * ``deformed.xdmf``: the deformed boundary (skin, bone, cut faces), with
+          ``displacement`` at its vertices and each triangle's ``tag`` (`meshes.anatomy`).
+
+        Returns the file names. Collective."""
         from pathlib import Path
 
         out = Path(out_dir)
-        mesh = self.domain.mesh
-        u = self.eq.u
-        if self.domain.degree > 1:   # XDMF holds vertex values: write u's P1 interpolant
-            u = dolfinx.fem.Function(compat.vector_space(mesh), name=u.name)
-            u.interpolate(self.eq.u)
-        write_xdmf(out / "displacement.xdmf", mesh, functions=[u])
-        self.domain.facet_tags.name = "facet_tags"
-        write_xdmf(out / "deformed.xdmf", mesh, meshtags=[self.domain.facet_tags],
-                   node_displacement=node_values(self.domain, self.eq.u.x.array))
+        self.write_volume(out / "displacement.xdmf", {"displacement": self.eq.u.x.array})
+        dom = self.domain
+        tri, tag = dom.tagged_triangles()
+        u, x = dom.vertex_array(self.eq.u.x.array), dom.vertex_array(dom.X)
+        if dom.comm.rank == 0:
+            used, tri = np.unique(tri, return_inverse=True)
+            x, u, tri = x[used] + u[used], u[used], tri.reshape(-1, 3)
+        write_grid(out / "deformed.xdmf", x, ("triangle", tri), {"displacement": u},
+                   {"tag": tag}, dom.comm)
         return ["displacement.xdmf", "displacement.h5", "deformed.xdmf", "deformed.h5"]
+
+    def write_volume(self, path, fields: dict) -> None:
+        """The rest volume to ``path`` (`fem.io.write_grid`) with ``fields`` ``{name: local
+        dof-block array}`` (e.g. ``eq.u.x.array``) at its vertices and the tissue fractions
+        (`meshes.tissue.TISSUES`) of its cells. Collective."""
+        from meshes.tissue import TISSUES
+
+        dom = self.domain
+        point_data = {k: dom.vertex_array(v) for k, v in fields.items()}
+        tissues = None if dom.tissues is None else dom.cell_array(dom.tissues)
+        cell_data = {} if tissues is None else {n: tissues[:, k] for k, n in enumerate(TISSUES)}
+        write_grid(path, dom.vertex_array(dom.X), ("tetra", dom.cell_array()), point_data,
+                   cell_data, dom.comm)
 
     def objective(self, targets, landmarks=None, weights=None, tikhonov: float = 0.0):
         """`inverse.objective.Objective` for landmark targets.

@@ -114,12 +114,11 @@ def main(argv=None):
 
 
 def _write(scene, pred, out: Path, comm):
-    """skin_sensitivity.npz and sensitivity.xdmf (dx/dp_i and u on the volume)."""
-    import dolfinx
+    """skin_sensitivity.npz and sensitivity.xdmf (u and dx/dp_i on the volume)."""
     import numpy as np
 
     from fem.compat import petsc_vec
-    from fem.io import write_npz, write_xdmf
+    from fem.io import write_npz
 
     dom = scene.domain
     write_npz(out / "skin_sensitivity.npz", {
@@ -127,13 +126,13 @@ def _write(scene, pred, out: Path, comm):
         "points_rest": pred.x_rest,
         "points": pred.x0, "triangles": dom.boundary_triangles(pred.vertices), "S": pred.S,
         "param_names": np.array(scene.param_names), "p0": pred.p0}, comm)
-    fields = []
+    fields = {"displacement": scene.eq.u.x.array}
     for name, s in zip(scene.param_names, scene.eq.sensitivity()):
-        f = dolfinx.fem.Function(dom.V, name=f"dx_d[{name}]")
+        f = scene.eq.u.copy()
         petsc_vec(f).array[:] = s.array
         f.x.scatter_forward()
-        fields.append(f)
-    write_xdmf(out / "sensitivity.xdmf", dom.mesh, functions=[scene.eq.u, *fields])
+        fields[f"dx_d[{name}]"] = f.x.array
+    scene.write_volume(out / "sensitivity.xdmf", fields)
 
 
 if __name__ == "__main__":

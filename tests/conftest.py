@@ -7,7 +7,8 @@ tier, ``make test`` all of them):
 * ``unit``: one part on its own (a unit cube, a block, a function): seconds, no head;
 * ``integration``: the engine and the planner on the tiny synthetic heads, in this process;
 * ``scripts``: the scripts as a user chains them, in fresh processes (the CTs among them);
-* ``browser``: the explorer's page in headless Chromium.
+* ``browser``: the explorer's page in headless Chromium;
+* ``clients``: the files the scripts write, opened by ParaView's ``pvbatch``.
 
 A test's tier is its own marker, else its module's ``TIER``, else ``integration`` where it
 uses a tiny head (the ``tiny_anatomy`` fixture, directly or not) and ``unit`` where it does
@@ -20,7 +21,7 @@ import os
 import numpy as np
 import pytest
 
-TIERS = ("unit", "integration", "scripts", "browser")
+TIERS = ("unit", "integration", "scripts", "browser", "clients")
 
 if "PYTEST_XDIST_WORKER" in os.environ:
     # `make test` runs a worker per core: an ``mpirun -n 2`` a test starts shares the cores
