@@ -309,6 +309,25 @@ class Equilibrium:
         """dx/dp at the equilibrium, Np PETSc vectors, cached (`TangentSolves.sensitivity`)."""
         return self.tangents.sensitivity()
 
+    def material_sensitivity(self) -> list:
+        """dx/dθ at the equilibrium: one new PETSc vector per material parameter
+        (`fem.material.theta_names`), mm per unit of θ, ``-K⁻¹ df/dθ`` with the kept
+        factorisation (`TangentSolves.responses`). Collective."""
+        loads = self.forms.material_loads(self.u_eq)
+        try:
+            return self.tangents.responses(loads)
+        finally:
+            for v in loads:
+                v.destroy()
+
+    def set_material(self, material):
+        """The material (``material``) from now on (`fem.forms.EnergyForms.set_material`);
+        the next solve finds its equilibrium (`fem.nonlinear.NonlinearSolver.
+        material_changed`)."""
+        self.forms.set_material(material)
+        self.material = material
+        self.solver.material_changed()
+
     def tangent_step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
         """dx/dp · dp, a new PETSc vector, mm (`fem.tangent.TangentSolves.step`)."""
         return self.tangents.step(dp, rhs)

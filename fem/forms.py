@@ -83,10 +83,12 @@ class EnergyForms:
         # material and penalty are constants (or cell fields), not numbers: the forms
         # compile once for all values
         k = dolfinx.fem.Constant(domain.mesh, PETSc.ScalarType(penalty))
-        mu, lmbda = self._lame(material)
+        self.material = material
+        mu, lmbda = self._lame_fields = tuple(self._lame(material))
+        self._material_form = None   # df/dθ's form, compiled on first use
         qd = 2 * (domain.degree - 1) if volume_quadrature_degree is None else \
             volume_quadrature_degree
-        dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
+        dx = self._dx = ufl.dx(domain=domain.mesh, metadata={"quadrature_degree": qd})
         contact = 0
         if active_tags:
             contact = 0.5 * k * ufl.inner(gap, gap) * ds(active_tags, metadata=md)
@@ -139,18 +141,70 @@ class EnergyForms:
         """UFL (mu, lmbda), kPa: constants for one material, DG0 fields for `Tissues`."""
         mesh = self.domain.mesh
         if isinstance(material, NeoHookean):
-            return (dolfinx.fem.Constant(mesh, PETSc.ScalarType(v))
-                    for v in (material.mu, material.lmbda))
+            return [dolfinx.fem.Constant(mesh, PETSc.ScalarType(v))
+                    for v in (material.mu, material.lmbda)]
         if self.domain.tissues is None:
             raise InputError(f"anatomy {self.domain.name!r} has no tissue classes: use the "
                              "homogeneous material")
         out = []
         space = compat.scalar_space(mesh)
-        dofs = space.dofmap.list.array   # one dof per local cell, in cell order
         for name, values in zip(("mu", "lambda"), material.lame(self.domain.tissues)):
             f = dolfinx.fem.Function(space, name=name)
-            f.x.array[dofs] = values
+            self._fill_cells(f, values)
             out.append(f)
+        return out
+
+    @staticmethod
+    def _fill_cells(f, values):
+        """A DG0 field's value per local cell (ghosts included), in cell order."""
+        f.x.array[f.function_space.dofmap.list.array] = values
+
+    # --- the material and its parameters θ (`fem.material.theta_names`)
+
+    def set_material(self, material):
+        """The material from now on: of the kind the forms were made with (one
+        `NeoHookean`, or `fem.material.Tissues`); its values change, nothing compiles."""
+        if isinstance(material, NeoHookean) != isinstance(self.material, NeoHookean):
+            raise InputError(f"the scene's forms hold a {type(self.material).__name__}; "
+                             f"cannot take a {type(material).__name__}")
+        mu, lmbda = self._lame_fields
+        if isinstance(material, NeoHookean):
+            mu.value, lmbda.value = material.mu, material.lmbda
+        else:
+            for f, values in zip((mu, lmbda), material.lame(self.domain.tissues)):
+                self._fill_cells(f, values)
+        self.material = material
+        self._obj_val = None
+
+    def material_loads(self, x: PETSc.Vec) -> list:
+        """df/dθ at the state x: one new PETSc vector per θ (`fem.material.theta_names`),
+        mN per unit of θ; Dirichlet rows zero. E_NH is linear in (mu, lmbda), so df/dθ_j is
+        E_NH's residual with (mu, lmbda) replaced by d(mu, lmbda)/dθ_j (one form, compiled
+        on first use, assembled once per θ). u is left at x. Collective."""
+        from fem.material import classes, lame_rates
+
+        if self._material_form is None:
+            space = compat.scalar_space(self.domain.mesh)
+            rates = [dolfinx.fem.Function(space, name=n) for n in ("dmu", "dlambda")]
+            F = ufl.Identity(3) + ufl.grad(self.u)
+            form = ufl.derivative(neo_hookean(F, *rates) * self._dx, self.u,
+                                  ufl.TestFunction(self.domain.V))
+            self._material_form = (compat.form(form), rates)
+        form, rates = self._material_form
+        ones = np.ones((len(self.domain.mesh.topology.original_cell_index), 1))
+        share = ones if isinstance(self.material, NeoHookean) else self.domain.tissues
+        self.set_state(x)
+        out = []
+        for k, m in enumerate(classes(self.material).values()):
+            for rate in lame_rates(m):
+                for f, r in zip(rates, rate):
+                    self._fill_cells(f, share[:, k] * r)
+                vec = self.b.duplicate()
+                vec.set(0.0)
+                compat.assemble_vector(vec, form)
+                vec.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
+                compat.set_bc(vec, self.bcs, x, 0.0)
+                out.append(vec)
         return out
 
     def _setup_turns(self, tags):

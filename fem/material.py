@@ -54,6 +54,10 @@ def neo_hookean(F, mu, lmbda):
 HOMOGENEOUS = NeoHookean()
 
 
+#: A material file's optional prior spreads per class (`inverse.uncertainty.Prior`).
+PRIOR_KEYS = ("sd_log_E", "sd_nu")
+
+
 @dataclasses.dataclass(frozen=True)
 class Tissues:
     """One Neo-Hookean material per tissue class (`meshes.tissue.TISSUES`), kPa.
@@ -94,7 +98,8 @@ class Tissues:
     @classmethod
     def from_file(cls, path) -> "Tissues":
         """From a JSON file ``{"skin": {"E": kPa, "nu": ..}, "fat": .., "muscle": ..}``; a
-        class it leaves out keeps its default. Raises `InputError` (one line)."""
+        class or value it leaves out keeps its default; the prior's spreads `PRIOR_KEYS` beside them
+        are `inverse.uncertainty.Prior`'s. Raises `InputError` (one line)."""
         import json
         from pathlib import Path
 
@@ -107,14 +112,67 @@ class Tissues:
                              "muscle")
         out = {}
         for name, given in spec.items():
-            if not isinstance(given, dict) or set(given) - {"E", "nu"}:
+            if not isinstance(given, dict) or set(given) - {"E", "nu", *PRIOR_KEYS}:
                 raise InputError(f"material file {path}: {name} must be {{\"E\": kPa, "
-                                 "\"nu\": ...}")
+                                 "\"nu\": ..., optionally \"sd_log_E\", \"sd_nu\"}")
             try:
-                out[name] = NeoHookean(**{k: float(v) for k, v in given.items()})
+                out[name] = dataclasses.replace(   # a value it leaves out keeps the class's
+                    getattr(cls(), name), **{k: float(v) for k, v in given.items()
+                                             if k not in PRIOR_KEYS})
             except (TypeError, ValueError, InputError) as e:
                 raise InputError(f"material file {path}: {name}: {e}") from e
         return dataclasses.replace(cls(), **out)
+
+
+# --- the material parameters θ (issue 46): each class's log E and ν
+
+#: What θ holds per class: the log of Young's modulus (E in kPa; a band in it is
+#: multiplicative) and Poisson's ratio.
+THETA_FIELDS = ("log_E", "nu")
+
+
+def classes(material) -> dict:
+    """The material's classes {name: `NeoHookean`}: ``tissue`` for one material, else skin,
+    fat and muscle (`Tissues`)."""
+    if isinstance(material, NeoHookean):
+        return {"tissue": material}
+    return {f.name: getattr(material, f.name) for f in dataclasses.fields(material)}
+
+
+def theta_names(material) -> list[str]:
+    """Names of θ, ``<class>.log_E`` and ``<class>.nu`` per class."""
+    return [f"{c}.{k}" for c in classes(material) for k in THETA_FIELDS]
+
+
+def theta(material):
+    """θ (2 n_classes,): each class's (ln E/kPa, ν), in `theta_names` order."""
+    import numpy as np
+
+    return np.array([v for m in classes(material).values() for v in (np.log(m.E), m.nu)])
+
+
+def with_theta(material, values):
+    """The material of the same kind with θ = ``values``; raises `InputError` (one line)
+    where a value makes no material (ν outside (-1, 0.5), E not finite)."""
+    import numpy as np
+
+    values = np.asarray(values, dtype=float).reshape(-1)
+    names = list(classes(material))
+    if values.shape != (2 * len(names),) or not np.all(np.isfinite(values)):
+        raise InputError(f"material parameters: expected {2 * len(names)} finite values "
+                         f"({', '.join(theta_names(material))}), got {values.tolist()}")
+    made = {c: dataclasses.replace(classes(material)[c], E=float(np.exp(values[2 * i])),
+                                   nu=float(values[2 * i + 1])) for i, c in enumerate(names)}
+    if isinstance(material, NeoHookean):
+        return made["tissue"]
+    return dataclasses.replace(material, **made)
+
+
+def lame_rates(m: NeoHookean):
+    """d(mu, lmbda)/d(ln E) and d(mu, lmbda)/d nu, kPa: ((2,), (2,))."""
+    E, nu = m.E, m.nu
+    d = (1 + nu) * (1 - 2 * nu)
+    return (m.mu, m.lmbda), (-E / (2 * (1 + nu) ** 2), E * (1 + 2 * nu ** 2) / d ** 2)
 
 
 def material_from_spec(spec):

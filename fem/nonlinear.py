@@ -305,6 +305,16 @@ class NonlinearSolver:
         self.linearisation.moved()
         self.kept.moved()
 
+    def material_changed(self):
+        """The forms' material changed (`fem.forms.EnergyForms.set_material`): the state is
+        an equilibrium no more (unless the exact rest), so the next solve solves; K and
+        dx/dp are forgotten, and the kept factor is an iterate's."""
+        st = self.state
+        if st.solved_xtol > 0:
+            st.solved_xtol = np.inf
+        self.linearisation.moved()
+        self.kept.moved()
+
     def destroy(self):
         for v in (self._x, self._w, self._r):
             v.destroy()

@@ -274,23 +274,34 @@ class TangentSolves:
 
     def sensitivity(self) -> list:
         """dx/dp at the equilibrium: Np PETSc vectors ``s_i = -K⁻¹ df/dp_i`` (mm per unit),
-        computed on first use and cached until the equilibrium changes. With a direct
-        solver: block CG on the kept factorisation where it is of K at an iterate near here
-        (the solve that reached it needed at most `SolverPolicy.tangent_lag_its`
-        iterations from it; `Linearisation.block_cg`, at most
-        `SolverPolicy.sensitivity_cg_its` iterations), else one factorisation of K at the
-        equilibrium and one block solve of all Np columns (MUMPS: ~ the cost of one column);
-        else Np tangent solves (`step`)."""
+        computed on first use (`responses`) and cached until the equilibrium changes."""
         lin, st = self.linearisation, self.state
         if lin.sensitivities is None:
-            dfdp = self.forms.dfdp(st.p, st.u_eq)
-            block = None
-            if self.kept.state is FactorState.ITERATE and self.kept.serves(
-                    st.last_its, st.policy.tangent_lag_its, unshifted=True):
-                block = lin.block_cg(dfdp, st.p, st.u_eq, st.policy.sensitivity_cg_its)
-            block = block or lin.block_solve(dfdp, st.u_eq, self.refactorisation.at_equilibrium)
-            lin.keep_sensitivities(block or [self.step(e) for e in np.eye(len(st.p))])
+            lin.keep_sensitivities(self.responses(self.forms.dfdp(st.p, st.u_eq)))
         return lin.sensitivities
+
+    def responses(self, columns: list) -> list:
+        """``-K⁻¹ c`` for each PETSc vector c of ``columns`` (loads such as df/dp_i or
+        df/dθ_j) at the equilibrium: new vectors, mm per unit. With a direct solver: block CG
+        on the kept factorisation where it is of K at an iterate near here (the solve that
+        reached it needed at most `SolverPolicy.tangent_lag_its` iterations from it;
+        `Linearisation.block_cg`, at most `SolverPolicy.sensitivity_cg_its` iterations),
+        else one factorisation of K at the equilibrium and one block solve of all columns
+        (MUMPS: ~ the cost of one column); else a tangent solve per column (`step`).
+        Collective."""
+        lin, st = self.linearisation, self.state
+        block = None
+        if self.kept.state is FactorState.ITERATE and self.kept.serves(
+                st.last_its, st.policy.tangent_lag_its, unshifted=True):
+            block = lin.block_cg(columns, st.p, st.u_eq, st.policy.sensitivity_cg_its)
+        block = block or lin.block_solve(columns, st.u_eq, self.refactorisation.at_equilibrium)
+        if block is None:
+            block = []
+            for c in columns:
+                load = c.copy()
+                load.scale(-1.0)
+                block.append(self.step(np.zeros(len(st.p)), rhs=load))
+        return block
 
     def step(self, dp, rhs: PETSc.Vec | None = None) -> PETSc.Vec:
         """dx = dx/dp · dp (a new PETSc vector, mm): from the cached sensitivities, else one

@@ -199,7 +199,7 @@ class Scene:
         """Max distance (mm) of active vertices from their goals."""
         return self.eq.active_goal_error()
 
-    def write(self, out_dir) -> list[str]:
+    def write(self, out_dir, fields: dict | None = None) -> list[str]:
         """ParaView's files into ``out_dir``, atomically; each is one grid that ParaView's
         default reader opens with its arrays (docs/decisions.md, "Files for ParaView"):
 
@@ -208,29 +208,34 @@ class Scene:
         * ``deformed.xdmf``: the deformed boundary (skin, bone, cut faces), with
           ``displacement`` at its vertices and each triangle's ``tag`` (`meshes.anatomy`).
 
-        Returns the file names. Collective."""
+        ``fields``: more point data for both, ``{name: (n_vertices, ...)}`` on rank 0 (e.g.
+        the band, `scripts._common.bands_of`). Returns the file names. Collective."""
         from pathlib import Path
 
         out = Path(out_dir)
-        self.write_volume(out / "displacement.xdmf", {"displacement": self.eq.u.x.array})
+        fields = fields or {}
+        self.write_volume(out / "displacement.xdmf", {"displacement": self.eq.u.x.array},
+                          fields)
         dom = self.domain
         tri, tag = dom.tagged_triangles()
         u, x = dom.vertex_array(self.eq.u.x.array), dom.vertex_array(dom.X)
         if dom.comm.rank == 0:
             used, tri = np.unique(tri, return_inverse=True)
-            x, u, tri = x[used] + u[used], u[used], tri.reshape(-1, 3)
-        write_grid(out / "deformed.xdmf", x, ("triangle", tri), {"displacement": u},
-                   {"tag": tag}, dom.comm)
+            x, tri = x[used] + u[used], tri.reshape(-1, 3)
+            fields = {"displacement": u[used], **{k: v[used] for k, v in fields.items()}}
+        write_grid(out / "deformed.xdmf", x, ("triangle", tri), fields, {"tag": tag}, dom.comm)
         return ["displacement.xdmf", "displacement.h5", "deformed.xdmf", "deformed.h5"]
 
-    def write_volume(self, path, fields: dict) -> None:
+    def write_volume(self, path, fields: dict, gathered: dict | None = None) -> None:
         """The rest volume to ``path`` (`fem.io.write_grid`) with ``fields`` ``{name: local
-        dof-block array}`` (e.g. ``eq.u.x.array``) at its vertices and the tissue fractions
+        dof-block array}`` (e.g. ``eq.u.x.array``) and ``gathered`` ``{name: (n_vertices,
+        ...)}`` on rank 0 at its vertices, and the tissue fractions
         (`meshes.tissue.TISSUES`) of its cells. Collective."""
         from meshes.tissue import TISSUES
 
         dom = self.domain
         point_data = {k: dom.vertex_array(v) for k, v in fields.items()}
+        point_data.update(gathered or {})
         tissues = None if dom.tissues is None else dom.cell_array(dom.tissues)
         cell_data = {} if tissues is None else {n: tissues[:, k] for k, n in enumerate(TISSUES)}
         write_grid(path, dom.vertex_array(dom.X), ("tetra", dom.cell_array()), point_data,

@@ -20,7 +20,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
+    add_band_args,
     add_transforms_arg,
+    bands_of,
     check_movements,
     movements,
     parse,
@@ -38,12 +40,14 @@ def main(argv=None):
     ap.add_argument("--out", help="output folder for XDMF files")
     ap.add_argument("--report", help="JSON report path")
     add_transforms_arg(ap)
+    add_band_args(ap)
     ap.add_argument("--list-params", action="store_true",
                     help="list parameter names, units and bounds, then exit")
     args, comm = parse(ap, argv)
     import time
 
     from fem.io import write_json
+    from inverse.uncertainty import scene_prior
 
     t0 = time.perf_counter()
     check_movements(args)
@@ -55,6 +59,7 @@ def main(argv=None):
                 print(f"{p.name:28s} {p.unit:5s} {p.kind:9s} [{p.bounds[0]:g}, {p.bounds[1]:g}]")
         return 0
     p = movements(args, scene)
+    prior = None if args.no_bands else scene_prior(scene, args.prior)
     warnings = warn_bounds(scene, p, comm)
     stats = scene.solve(p)
     rest = scene.landmarks(rest=True)
@@ -62,8 +67,11 @@ def main(argv=None):
     err = scene.active_goal_error()
     timings = dict(scene.timings, assemble=stats.assemble, linear_solve=stats.linear_solve,
                    solve=stats.total)
+    t = time.perf_counter()
+    bands, fields = bands_of(scene, prior, list(moved), vertices=bool(args.out))
+    timings["bands"] = time.perf_counter() - t
     if args.out:
-        scene.write(args.out)
+        scene.write(args.out, fields)
         write_transforms(scene.transforms(), args.out, comm)
     timings["total"] = time.perf_counter() - t0
     report = {
@@ -78,7 +86,7 @@ def main(argv=None):
         "diagonal_shifts": stats.shifts, "factorisations": stats.factorisations,
         "lagged_steps": stats.lagged, "continuation_steps": stats.continuation_steps,
         "min_det_F": stats.min_det_F, "warnings": warnings + stats.warnings,
-        **scene.motion_report(),
+        **scene.motion_report(), "bands": bands,
         "solver": scene.eq.solver_name, "timings_s": timings,
         "peak_rss_mb": peak_rss_mb(comm),
     }

@@ -1,0 +1,192 @@
+"""How sure a prediction is: the tissue's parameters θ (`fem.material.theta_names`: each
+class's ln E and ν) with a prior, their sensitivities dx/dθ at an equilibrium, and the
+prediction bands, the linearised covariance ``S_θ Σ_θ S_θᵀ`` of each landmark and vertex
+(docs/uncertainty.md).
+
+* `Prior`: independent per parameter: ln E normal (E log-normal, a multiplicative band), ν
+  normal; medians from the scene's material, spreads `SD_LOG_E` and `SD_NU` or a
+  material file's.
+* `theta_rows`: dx/dθ (N, 3, nθ) at the landmarks (and, asked for, every vertex), for nθ
+  back-substitutions with the kept factorisation (`fem.equilibrium.Equilibrium.
+  material_sensitivity`).
+* `bands`: per point, the covariance (3×3, mm²), its SD along the head frame's axes, its
+  1-σ ellipsoid's semi-axes, and the radius holding 95 % of the probability.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from fem.material import classes, material_from_spec, theta, theta_names, with_theta
+from meshes.errors import InputError
+
+#: Prior SD of ln E per class (a 1-σ factor of e^SD). Each covers its measurements' spread
+#: and the gap between methods and sites (docs/uncertainty.md has the sources):
+#: skin 36 kPa by suction, 31-42 kPa over 16 subjects and four sites (Luboz 2014), 2σ
+#: spans 22-59 kPa; fat 3.25 ± 0.91 kPa (breast, Samani 2007) and 2.7-4.4 kPa for the whole
+#: tissue over the jaw (Wei 2021): 2σ spans 1.6-6.6 kPa; muscle 10.7 ± 1.8 kPa (masseter,
+#: Olchowy 2021) and its tone: 2σ spans 6.5-17.6 kPa; one homogeneous tissue, the paper's
+#: 5 kPa, as wide as fat, the range the published facial models span (a factor 2-3).
+SD_LOG_E = {"skin": 0.25, "fat": 0.35, "muscle": 0.25, "tissue": 0.35}
+#: Prior SD of ν: the published facial models take 0.45-0.49 (2σ about 0.47).
+SD_NU = 0.01
+#: ν is sampled and fitted inside this range (the Neo-Hookean needs ν < 0.5).
+NU_RANGE = (0.40, 0.499)
+@dataclasses.dataclass(frozen=True)
+class Prior:
+    """Independent normal prior on θ (`fem.material.theta_names` order).
+
+    Attributes: names (nθ,); mean (nθ,): ln E/kPa and ν per class; sd (nθ,).
+    """
+
+    names: tuple
+    mean: np.ndarray
+    sd: np.ndarray
+
+    @classmethod
+    def of(cls, material, spreads: dict | None = None) -> "Prior":
+        """The prior centred on ``material`` (a `NeoHookean`, `fem.material.Tissues` or
+        spec), spreads ``{class: {"sd_log_E": .., "sd_nu": ..}}`` over the defaults."""
+        material = material_from_spec(material)
+        spreads = spreads or {}
+        sd = []
+        for c in classes(material):
+            given = spreads.get(c, {})
+            sd += [given.get("sd_log_E", SD_LOG_E[c]), given.get("sd_nu", SD_NU)]
+        sd = np.asarray(sd, dtype=float)
+        names = theta_names(material)
+        bad = [n for n, s in zip(names, sd) if not (np.isfinite(s) and s > 0)]
+        if bad:
+            raise InputError(f"prior: the spread of {', '.join(bad)} must be positive and "
+                             "finite")
+        return cls(tuple(names), theta(material), sd)
+
+    @classmethod
+    def from_file(cls, path) -> "Prior":
+        """From a material file (`fem.material.Tissues.from_file`): its E and ν are the
+        medians, its optional ``sd_log_E`` and ``sd_nu`` per class the spreads."""
+        material = material_from_spec(str(path))
+        spec = json.loads(Path(path).read_text())
+        return cls.of(material, {c: {k: v for k, v in s.items() if k.startswith("sd_")}
+                                 for c, s in spec.items()})
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Σ_θ (nθ, nθ), diagonal."""
+        return np.diag(self.sd ** 2)
+
+    def report(self) -> dict:
+        """Per parameter: its median (E in kPa, or ν) and its 1-σ spread."""
+        out = {}
+        for n, m, s in zip(self.names, self.mean, self.sd):
+            c, field = n.rsplit(".", 1)
+            if field == "log_E":
+                out[f"{c}.E_kPa"] = {"median": float(np.exp(m)), "sd_log": float(s)}
+            else:
+                out[f"{c}.nu"] = {"median": float(m), "sd": float(s)}
+        return out
+
+
+def set_theta(scene, values) -> None:
+    """Give ``scene`` the material with θ = ``values``; its next solve finds the
+    equilibrium (`fem.equilibrium.Equilibrium.set_material`)."""
+    scene.eq.set_material(with_theta(scene.eq.material, values))
+
+
+def scene_prior(scene, path=None) -> Prior:
+    """The prior of ``scene``'s material: ``path`` (a material file with spreads), else
+    the scene's material file where it has one, else its material with `SD_LOG_E`."""
+    if path is not None:
+        return Prior.from_file(path)
+    if isinstance(scene.material, str) and scene.material.endswith(".json"):
+        return Prior.from_file(scene.material)
+    return Prior.of(scene.eq.material)
+
+
+def theta_rows(scene, names=None, vertices: bool = False):
+    """dx/dθ at the current equilibrium: (landmarks (Nl, 3, nθ) in ``names`` order (default
+    all), and with ``vertices`` every vertex's (n_vertices, 3, nθ) on rank 0 (None
+    elsewhere) or None), mm per unit of θ. nθ back-substitutions. Collective."""
+    names = list(scene.domain.landmarks) if names is None else list(names)
+    op = scene.domain.point_operator(names)
+    cols = scene.eq.material_sensitivity()
+    try:
+        rows = np.stack([op.apply(c.array, offset=False) for c in cols], axis=-1)
+        every = None
+        if vertices:
+            parts = [scene.domain.vertex_array(c.array) for c in cols]
+            every = np.stack(parts, axis=-1) if scene.domain.comm.rank == 0 else None
+        return rows, every
+    finally:
+        for c in cols:
+            c.destroy()
+
+
+def covariances(rows: np.ndarray, prior: Prior) -> np.ndarray:
+    """``S_θ Σ_θ S_θᵀ`` (N, 3, 3) mm² of points with rows (N, 3, nθ)."""
+    scaled = rows * prior.sd
+    return np.einsum("nit,njt->nij", scaled, scaled)
+
+
+def radius95(cov: np.ndarray) -> np.ndarray:
+    """(N,) mm: the radius of the ball about the prediction that holds 95 % of a Gaussian
+    with covariances ``cov`` (N, 3, 3). |δ|² is a χ² weighted by cov's eigenvalues λ,
+    taken as c χ²_ν with its first two moments (c = Σλ²/Σλ, ν = (Σλ)²/Σλ²,
+    Welch-Satterthwaite): exact for one, two or three equal λ, within 0.5 % of 10⁶ samples
+    for 49 others (flat, elongated and random)."""
+    from scipy.stats import chi2
+
+    lam = np.clip(np.linalg.eigvalsh(cov), 0.0, None)
+    s1, s2 = lam.sum(axis=1), (lam ** 2).sum(axis=1)
+    some = s2 > 0
+    out = np.zeros(len(lam))
+    c, nu = s2[some] / s1[some], s1[some] ** 2 / s2[some]
+    out[some] = np.sqrt(c * chi2.ppf(0.95, nu))
+    return out
+
+
+def bands(rows: np.ndarray, prior: Prior, frame, names) -> dict:
+    """Each point's band ``{name: {...}}``: ``sd_mm`` along the head frame's (left,
+    anterior, superior) axes, ``ellipsoid_mm`` its 1-σ semi-axes (largest first) and
+    ``ellipsoid_axes`` their directions in the head frame, ``r95_mm``, and
+    ``by_parameter_mm``: the 1-σ motion each parameter alone gives (|S_θ,j| sd_j)."""
+    cov = covariances(rows, prior)
+    R = frame.rotation
+    head = np.einsum("ai,nab,bj->nij", R, cov, R)
+    r95 = radius95(cov)
+    out = {}
+    for k, n in enumerate(names):
+        lam, vec = np.linalg.eigh(head[k])
+        order = np.argsort(lam)[::-1]
+        out[n] = {"sd_mm": np.sqrt(np.clip(np.diag(head[k]), 0, None)).tolist(),
+                  "ellipsoid_mm": np.sqrt(np.clip(lam[order], 0, None)).tolist(),
+                  "ellipsoid_axes": vec[:, order].T.tolist(),
+                  "r95_mm": float(r95[k]),
+                  "by_parameter_mm": {t: float(np.linalg.norm(rows[k, :, j]) * prior.sd[j])
+                                      for j, t in enumerate(prior.names)}}
+    return out
+
+
+def band_report(scene, prior: Prior, names=None) -> dict:
+    """The report's ``bands``: the prior (`Prior.report`) and each landmark's band
+    (`bands`) at the current equilibrium. Collective."""
+    names = list(scene.domain.landmarks) if names is None else list(names)
+    rows, _ = theta_rows(scene, names)
+    return {"prior": prior.report(), "landmarks": bands(rows, prior, scene.head_frame, names)}
+
+
+def sample_theta(prior: Prior, n: int, seed: int = 0) -> np.ndarray:
+    """(n, nθ) samples of the prior, ν kept in `NU_RANGE` (redrawn outside)."""
+    rng = np.random.default_rng(seed)
+    nu = np.array([n_.endswith(".nu") for n_ in prior.names])
+    out = prior.mean + prior.sd * rng.standard_normal((n, len(prior.mean)))
+    bad = ((out[:, nu] < NU_RANGE[0]) | (out[:, nu] > NU_RANGE[1])).any(axis=1)
+    while bad.any():
+        out[bad] = prior.mean + prior.sd * rng.standard_normal((bad.sum(), len(prior.mean)))
+        bad = ((out[:, nu] < NU_RANGE[0]) | (out[:, nu] > NU_RANGE[1])).any(axis=1)
+    return out
+
