@@ -146,11 +146,13 @@ class Domain:
         tri, first = np.unique(tri, axis=0, return_index=True)   # ghosts, gathered twice
         return tri, tag[first]
 
-    def vertex_array(self, block_values: np.ndarray, root: int = 0) -> np.ndarray | None:
+    def vertex_array(self, block_values: np.ndarray, k: int = 3,
+                     root: int = 0) -> np.ndarray | None:
         """Values at the mesh's vertices (n_vertices, k) in the original order, on ``root``
-        (None elsewhere), from per-dof-block values (n_local_nodes, k), or their flat array
-        (P2 edge midpoints are dropped). Collective."""
-        vals = np.asarray(block_values).reshape(len(self.node_key), -1)[:self.n_owned]
+        (None elsewhere), from per-dof-block values (n_local_nodes or n_owned, k), or their
+        flat array: a Function's or a PETSc vector's (P2 edge midpoints are dropped).
+        Collective."""
+        vals = np.asarray(block_values).reshape(-1, k)[:self.n_owned]
         index = self.input_index[:self.n_owned]
         return _on_root(self.comm, index[index >= 0], vals[index >= 0], self.n_vertices, root)
 

@@ -309,13 +309,14 @@ class Equilibrium:
         """dx/dp at the equilibrium, Np PETSc vectors, cached (`TangentSolves.sensitivity`)."""
         return self.tangents.sensitivity()
 
-    def material_sensitivity(self) -> list:
+    def material_sensitivity(self, rtol: float | None = None) -> list:
         """dx/dθ at the equilibrium: one new PETSc vector per material parameter
         (`fem.material.theta_names`), mm per unit of θ, ``-K⁻¹ df/dθ`` with the kept
-        factorisation (`TangentSolves.responses`). Collective."""
+        factorisation (`TangentSolves.responses`; ``rtol``: a loose relative residual
+        that block CG on any iterate's factor may stop at). Collective."""
         loads = self.forms.material_loads(self.u_eq)
         try:
-            return self.tangents.responses(loads)
+            return self.tangents.responses(loads, rtol)
         finally:
             for v in loads:
                 v.destroy()

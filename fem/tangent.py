@@ -157,17 +157,19 @@ class Linearisation:
             v.scale(-1.0)
         return out
 
-    def block_cg(self, columns: list, p, x: PETSc.Vec, max_its: int):
+    def block_cg(self, columns: list, p, x: PETSc.Vec, max_its: int,
+                 rtol: float | None = None):
         """-K⁻¹ c for each PETSc vector c of ``columns``, K at the equilibrium x at p, by CG
         on all columns at once, preconditioned by the kept factorisation as it is (of K at
-        a nearby iterate; one MatMatSolve per iteration for every column), to the tangent
-        KSP's relative residual: a list of new vectors, or None where a column needs more
+        a nearby iterate; one MatMatSolve per iteration for every column), to the relative
+        residual ``rtol`` (default: the tangent KSP's): a list of new vectors, or None where
+        a column needs more
         than ``max_its`` iterations, K is not positive definite along a direction, or the
         factorisation serves no block solve. Collective."""
         if not self._blockable(columns):
             return None
         K = self.matrix(p, x)
-        rtol = self.ksp.getTolerances()[0]
+        rtol = self.ksp.getTolerances()[0] if rtol is None else rtol
         m = len(columns)
         X, R, Z, P, Q = ([x.duplicate() for _ in range(m)] for _ in range(5))
         done = False
@@ -280,20 +282,21 @@ class TangentSolves:
             lin.keep_sensitivities(self.responses(self.forms.dfdp(st.p, st.u_eq)))
         return lin.sensitivities
 
-    def responses(self, columns: list) -> list:
+    def responses(self, columns: list, rtol: float | None = None) -> list:
         """``-K⁻¹ c`` for each PETSc vector c of ``columns`` (loads such as df/dp_i or
         df/dθ_j) at the equilibrium: new vectors, mm per unit. With a direct solver: block CG
         on the kept factorisation where it is of K at an iterate near here (the solve that
-        reached it needed at most `SolverPolicy.tangent_lag_its` iterations from it;
-        `Linearisation.block_cg`, at most `SolverPolicy.sensitivity_cg_its` iterations),
-        else one factorisation of K at the equilibrium and one block solve of all columns
-        (MUMPS: ~ the cost of one column); else a tangent solve per column (`step`).
-        Collective."""
+        reached it needed at most `SolverPolicy.tangent_lag_its` iterations from it), or at
+        any iterate where a loose relative residual ``rtol`` is asked for
+        (`Linearisation.block_cg`, at most `SolverPolicy.sensitivity_cg_its` iterations);
+        else one factorisation of K at the equilibrium (where none is held) and one block
+        solve of all columns (MUMPS: ~ the cost of one column); else a tangent solve per
+        column (`step`). Collective."""
         lin, st = self.linearisation, self.state
         block = None
-        if self.kept.state is FactorState.ITERATE and self.kept.serves(
-                st.last_its, st.policy.tangent_lag_its, unshifted=True):
-            block = lin.block_cg(columns, st.p, st.u_eq, st.policy.sensitivity_cg_its)
+        if self.kept.state is FactorState.ITERATE and (rtol is not None or self.kept.serves(
+                st.last_its, st.policy.tangent_lag_its, unshifted=True)):
+            block = lin.block_cg(columns, st.p, st.u_eq, st.policy.sensitivity_cg_its, rtol)
         block = block or lin.block_solve(columns, st.u_eq, self.refactorisation.at_equilibrium)
         if block is None:
             block = []

@@ -109,12 +109,14 @@ def _curve(points, cuts):
 
 
 def render_before_after(rest, after, tris, landmarks: dict, targets: dict, path,
-                        title: str, frame=None) -> None:
+                        title: str, frame=None, band=None) -> None:
     """A PNG at ``path``: the mid-sagittal skin profile before (rest, (N, 3) mm) and after a
-    plan (``after``), with the landmarks after ({name: (3,)}, black) and their targets (red);
-    and the face after the plan from the front, coloured by its displacement from rest (mm).
-    ``tris``: (T, 3) skin triangles into the points; all in the scene's frame, drawn in the
-    head frame ``frame`` (`meshes.frame.HeadFrame`; None: the scene's)."""
+    plan (``after``), with the landmarks after ({name: (3,)}, black) and their targets (red),
+    and ``band`` (N,) mm, where given, shaded on either side of the profile after (the 95 %
+    radius of `inverse.uncertainty`); and the face after the plan from the front, coloured
+    by its displacement from rest (mm). ``tris``: (T, 3) skin triangles into the points;
+    all in the scene's frame, drawn in the head frame ``frame`` (`meshes.frame.HeadFrame`;
+    None: the scene's)."""
     import matplotlib
 
     if frame is not None:
@@ -127,8 +129,27 @@ def render_before_after(rest, after, tris, landmarks: dict, targets: dict, path,
     from matplotlib.collections import LineCollection
 
     fig = plt.figure(figsize=(12, 6))
-    ax = fig.add_subplot(1, 2, 1)
+    grid = fig.add_gridspec(1, 3, width_ratios=(5, 1.3, 6) if band is not None else (6, 0, 6))
+    ax = fig.add_subplot(grid[0])
     cuts = _midsagittal(rest, tris)
+    if band is not None:
+        from matplotlib.collections import PolyCollection
+
+        seg = _curve(after, cuts)[:, :, 1:]
+        width = _curve(np.repeat(np.asarray(band, float)[:, None], 3, axis=1), cuts)[:, :, 0]
+        side = fig.add_subplot(grid[1], sharey=ax)   # the band's size along the profile
+        side.add_collection(LineCollection(np.stack([width, seg[:, :, 1]], axis=2),
+                                           colors="tab:orange", linewidths=1.6))
+        side.set_xlim(0, max(width.max(), 1e-3) * 1.1)
+        side.set_xlabel("95 % band, mm")
+        side.tick_params(labelleft=False)
+        d = seg[:, 1] - seg[:, 0]
+        n = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(
+            np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        quads = np.stack([seg[:, 0] + width[:, :1] * n, seg[:, 1] + width[:, 1:] * n,
+                          seg[:, 1] - width[:, 1:] * n, seg[:, 0] - width[:, :1] * n], axis=1)
+        ax.add_collection(PolyCollection(quads, facecolors="tab:orange", edgecolors="none",
+                                         alpha=0.45, label="95 % band (tissue)"))
     for pts, style in ((rest, dict(colors="0.55", linestyles="--", label="before")),
                        (after, dict(colors="k", label="after"))):
         seg = _curve(pts, cuts)[:, :, 1:]   # (y anterior, z superior)
@@ -151,7 +172,7 @@ def render_before_after(rest, after, tris, landmarks: dict, targets: dict, path,
     disp = np.linalg.norm(after - rest, axis=1)
     cmap = plt.get_cmap("viridis")
     colour = cmap(disp[tris].mean(axis=1) / max(disp.max(), 1e-9))[:, :3]
-    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    ax3 = fig.add_subplot(grid[2], projection="3d")
     _draw(ax3, after, tris, _shaded(after, tris, colour, light=(0.2, 1.0, 0.3)), (5, 90))
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, disp.max()))
     fig.colorbar(sm, ax=ax3, shrink=0.6, label="displacement from rest, mm")

@@ -21,6 +21,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
+    add_band_args,
+    bands_of,
     names_list,
     parse,
     read_json,
@@ -76,15 +78,18 @@ def main(argv=None):
     ap.add_argument("--picture", help="PNG of the face before and after the plan, with the "
                     "landmarks and their targets")
     ap.add_argument("--report", help="JSON report path")
+    add_band_args(ap)
     args, comm = parse(ap, argv)
     import time
 
     import numpy as np
 
     from fem.io import write_json
+    from inverse.uncertainty import scene_prior
 
     t0 = time.perf_counter()
     scene = scene_from_args(args, comm, plan=True)
+    prior = None if args.no_bands else scene_prior(scene, args.prior)
     targets = args.targets or scene.default_targets(args.goal)
     names = names_list(args.landmarks) if args.landmarks is not None else None
     obj = scene.objective(targets, names, tikhonov=args.tikhonov)
@@ -127,11 +132,16 @@ def main(argv=None):
     report["resumed_from_iteration"] = offset if args.resume else None
     report["timings_s"] = dict(report["timings_s"], mesh=scene.timings["mesh"],
                                compile=scene.timings["compile"])
+    t = time.perf_counter()   # the bands at the plan found
+    report["bands"], fields = bands_of(scene, prior, list(scene.domain.landmarks),
+                                       vertices=bool(args.out or args.picture))
+    report["timings_s"]["bands"] = time.perf_counter() - t
     if args.out:
-        scene.write(args.out)
+        scene.write(args.out, fields)
         write_transforms(scene.transforms(), args.out, comm)
     if args.picture:
-        _picture(scene, dict(zip(names, obj.targets)), args.picture, comm)
+        _picture(scene, dict(zip(names, obj.targets)), args.picture, comm,
+                 fields.get("band_r95_mm"))
     report["timings_s"]["total"] = time.perf_counter() - t0
     if args.report:
         write_json(args.report, report, comm)
@@ -140,9 +150,9 @@ def main(argv=None):
     return 0
 
 
-def _picture(scene, targets: dict, path, comm) -> None:
-    """The skin at rest and at the planned equilibrium (`scripts._render`), written
-    atomically by rank 0. Collective."""
+def _picture(scene, targets: dict, path, comm, band=None) -> None:
+    """The skin at rest and at the planned equilibrium (`scripts._render`), with ``band``
+    (n_vertices,) mm on rank 0 where given, written atomically by rank 0. Collective."""
     import numpy as np
 
     from fem.io import write_on_root
@@ -155,8 +165,9 @@ def _picture(scene, targets: dict, path, comm) -> None:
     tris = dom.boundary_triangles(verts)
     landmarks = scene.landmarks(list(targets))
     title = f"{scene.case or dom.name}: the face before and after the plan"
+    band = None if band is None else band[verts]
     write_on_root(path, lambda p: render_before_after(rest, after, tris, landmarks, targets,
-                                                      p, title, scene.head_frame), comm)
+                                                      p, title, scene.head_frame, band), comm)
 
 
 def print_plan(report) -> None:
@@ -164,12 +175,15 @@ def print_plan(report) -> None:
     print(f"\n{report['case']}: {report['n_vertices']} vertices, {report['n_ranks']} rank(s); "
           f"{report['gn_iterations']} Gauss-Newton iterations, {report['forward_solves']} "
           f"forward solves, converged: {report['converged']} ({report['stop_reason']})")
+    bands = (report.get("bands") or {}).get("landmarks", {})
     print(f"\n{'landmark':9s} {'before mm':>10s} {'after mm':>10s}   after - target, mm: "
-          f"{'left':>6s} {'anterior':>8s} {'superior':>8s}")
+          f"{'left':>6s} {'anterior':>8s} {'superior':>8s}   95 % band, mm")
     for n, v in report["landmarks"].items():
         off = v["offset_after_mm"]
+        band = f"{bands[n]['r95_mm']:9.2f}" if n in bands else ""
         print(f"{n:9s} {v['distance_before_mm']:10.2f} {v['distance_after_mm']:10.2f}"
-              f"{'':22s}{off['left']:6.2f} {off['anterior']:8.2f} {off['superior']:8.2f}")
+              f"{'':22s}{off['left']:6.2f} {off['anterior']:8.2f} {off['superior']:8.2f}"
+              f"   {band}")
     print(f"{'mean':9s} {report['mean_distance_before_mm']:10.2f} "
           f"{report['mean_distance_after_mm']:10.2f}\n\nparameters found:")
     for n, v in zip(report["param_names"], report["params_optimal"]):

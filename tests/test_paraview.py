@@ -98,6 +98,8 @@ def test_the_displacement_opens_on_one_grid(written, opened, script):
         "n_cells", seen["cells"])), seen
     assert seen["point_data"]["displacement"]["components"] == 3
     assert _top(seen) == pytest.approx(report["displacement_max_mm"], rel=1e-9)
+    r95 = [b["r95_mm"] for b in report["bands"]["landmarks"].values()]   # issue 46's band
+    assert max(r95) <= _top(seen, "band_r95_mm") < 100 * max(r95)
     if script == "sim":   # the CT scene has tissue classes
         assert set(seen["cell_data"]) == {"skin", "fat", "muscle"}
         for a in seen["cell_data"].values():
