@@ -41,6 +41,8 @@ NU_RANGE = (0.40, 0.499)
 #: rows came within 0.4 % of 1e-6's (1e-2: 5 %, 1e-4: 0.01 %), in 1.24 s against 2.75 s,
 #: and 2.08 s for a factorisation at the equilibrium; a band needs no more than 1 %.
 BAND_RTOL = 1e-3
+#: What BAND_RTOL gives: each row (and band) within this fraction of the largest.
+BAND_ACCURACY = 0.01
 
 
 @dataclasses.dataclass(frozen=True)
