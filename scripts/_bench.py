@@ -98,7 +98,7 @@ SECTIONS = {"forward": "forward", "stress": "stress", "plan": "plan", "peers": "
             "accuracy-tolerance": "accuracy", "accuracy-tolerance-qn": "accuracy",
             "accuracy-prediction": "accuracy", "accuracy-gradient": "accuracy",
             "plausibility": "plausibility", "ct": "ct", "validation": "validation",
-            "explorer": "explorer"}
+            "explorer": "explorer", "bands": "bands"}
 
 INTRO = """# Benchmarks
 

@@ -12,11 +12,12 @@
     python3 scripts/bench.py validation [--resolution paper] [--ranks 1,2]
     python3 scripts/bench.py explorer [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py peers [--resolutions tiny,coarse,medium,paper] [--ranks 1,2]
+    python3 scripts/bench.py bands [--resolution paper] [--resolution-mc coarse] [--samples 64]
     python3 scripts/bench.py all       # every one above with its defaults: BENCHMARKS.md whole
 
 One module a benchmark: ``bench_forward`` (forward, stress), ``bench_plan``,
 ``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_validation``,
-``bench_explorer``, ``bench_peers``; the shared
+``bench_explorer``, ``bench_peers``, ``bench_bands``; the shared
 helpers in ``_bench``. This file checks the options and dispatches.
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
@@ -91,7 +92,8 @@ def check_args(args) -> None:
              "resolutions_pred": RESOLUTIONS, "resolutions_p1": RESOLUTIONS,
              "resolutions_p2": RESOLUTIONS, "iterative_up_to": RESOLUTIONS,
              "all_up_to": RESOLUTIONS,
-             "resolution_grad": RESOLUTIONS, "resolution": RESOLUTIONS, "solvers": PRESETS,
+             "resolution_grad": RESOLUTIONS, "resolution": RESOLUTIONS,
+             "resolution_mc": RESOLUTIONS, "solvers": PRESETS,
              "methods": METHODS,
              "methods_tol": METHODS, "occlusions": ("free", "final"), "cts": CTS,
              "parts": ("mesh", "tolerance", "prediction", "gradient", "order")}
@@ -120,6 +122,9 @@ def check_args(args) -> None:
     elif args.what == "explorer":
         number("events", args.events, 1, 10000, integer=True)
         args.events = int(args.events)
+    elif args.what == "bands":
+        number("samples", args.samples, 2, 100000, integer=True)
+        args.samples = int(args.samples)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -191,6 +196,10 @@ def main():
                         "beside orthodiff, in one run")
     pe.add_argument("--resolutions", default="tiny,coarse,medium,paper")
     pe.add_argument("--ranks", default="1,2")
+    b = sub.add_parser("bands", help="the prediction bands' cost, and against sampling")
+    b.add_argument("--resolution", default="paper")
+    b.add_argument("--resolution-mc", default="coarse")
+    b.add_argument("--samples", default="64", help="Monte Carlo samples per scene")
     sub.add_parser("all", help="every benchmark with its defaults: BENCHMARKS.md whole")
     argv = sys.argv[1:]
     runs = [[w] for w in ALL] if argv[:1] == ["all"] and len(argv) == 1 else [argv]
@@ -205,6 +214,7 @@ def main():
         todo.append(args)
     from scripts import (
         bench_accuracy,
+        bench_bands,
         bench_ct,
         bench_explorer,
         bench_forward,
@@ -218,7 +228,8 @@ def main():
            "stress": bench_forward.stress, "accuracy": bench_accuracy.accuracy,
            "plausibility": bench_plausibility.plausibility, "ct": bench_ct.ct,
            "validation": bench_validation.validation,
-           "explorer": bench_explorer.explorer, "peers": bench_peers.peers}
+           "explorer": bench_explorer.explorer, "peers": bench_peers.peers,
+           "bands": bench_bands.bands}
     for args in todo:
         print(f"== bench.py {' '.join(args.argv)}", flush=True)
         run[args.what](args)
