@@ -28,7 +28,7 @@ from meshes.errors import InputError, SolverError
 #: and the gap between methods and sites (docs/uncertainty.md has the sources):
 #: skin 36 kPa by suction, 31-42 kPa over 16 subjects and four sites (Luboz 2014), 2σ
 #: spans 22-59 kPa; fat 3.25 ± 0.91 kPa (breast, Samani 2007) and 2.7-4.4 kPa for the whole
-#: tissue over the jaw (Wei 2021): 2σ spans 1.6-6.6 kPa; muscle 10.7 ± 1.8 kPa (masseter,
+#: tissue over the jaw (Wei 2021): 2σ spans 1.6-6.5 kPa; muscle 10.7 ± 1.8 kPa (masseter,
 #: Olchowy 2021) and its tone: 2σ spans 6.5-17.6 kPa; one homogeneous tissue, the paper's
 #: 5 kPa, as wide as fat, the range the published facial models span (a factor 2-3).
 SD_LOG_E = {"skin": 0.25, "fat": 0.35, "muscle": 0.25, "tissue": 0.35}
