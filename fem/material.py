@@ -95,34 +95,6 @@ class Tissues:
         return (f @ np.array([m.mu for m in classes]),
                 f @ np.array([m.lmbda for m in classes]))
 
-    @classmethod
-    def from_file(cls, path) -> "Tissues":
-        """From a JSON file ``{"skin": {"E": kPa, "nu": ..}, "fat": .., "muscle": ..}``; a
-        class or value it leaves out keeps its default; the prior's spreads `PRIOR_KEYS` beside them
-        are `inverse.uncertainty.Prior`'s. Raises `InputError` (one line)."""
-        import json
-        from pathlib import Path
-
-        try:
-            spec = json.loads(Path(path).read_text())
-        except (OSError, ValueError) as e:
-            raise InputError(f"cannot read material file {path}: {e}") from e
-        if not isinstance(spec, dict) or set(spec) - {"skin", "fat", "muscle"}:
-            raise InputError(f"material file {path}: expected an object with keys skin, fat, "
-                             "muscle")
-        out = {}
-        for name, given in spec.items():
-            if not isinstance(given, dict) or set(given) - {"E", "nu", *PRIOR_KEYS}:
-                raise InputError(f"material file {path}: {name} must be {{\"E\": kPa, "
-                                 "\"nu\": ..., optionally \"sd_log_E\", \"sd_log_1m2nu\"}")
-            try:
-                out[name] = dataclasses.replace(   # a value it leaves out keeps the class's
-                    getattr(cls(), name), **{k: float(v) for k, v in given.items()
-                                             if k not in PRIOR_KEYS})
-            except (TypeError, ValueError, InputError) as e:
-                raise InputError(f"material file {path}: {name}: {e}") from e
-        return dataclasses.replace(cls(), **out)
-
 
 # --- the material parameters θ (issue 46): each class's ln E and ln(1 - 2ν)
 
@@ -182,8 +154,50 @@ def lame_rates(m: NeoHookean):
                              dnu * E * (1 + 2 * nu ** 2) / d ** 2)
 
 
+def read_material_file(path):
+    """The material of a JSON file: ``{"skin": {"E": kPa, "nu": ..}, "fat": .., "muscle":
+    ..}`` (`Tissues`; a class or value it leaves out keeps its default) or ``{"tissue":
+    {..}}`` (one `NeoHookean`, the paper's by default). The prior's spreads `PRIOR_KEYS`
+    beside them are `inverse.uncertainty.Prior`'s. Raises `InputError` (one line)."""
+    import json
+    from pathlib import Path
+
+    try:
+        spec = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read material file {path}: {e}") from e
+    one = isinstance(spec, dict) and set(spec) == {"tissue"}
+    if not isinstance(spec, dict) or not (one or not set(spec) - {"skin", "fat", "muscle"}):
+        raise InputError(f"material file {path}: expected an object with keys skin, fat, "
+                         "muscle, or the key tissue alone")
+    base = HOMOGENEOUS if one else Tissues()
+    out = {}
+    for name, given in spec.items():
+        if not isinstance(given, dict) or set(given) - {"E", "nu", *PRIOR_KEYS}:
+            raise InputError(f"material file {path}: {name} must be {{\"E\": kPa, "
+                             "\"nu\": ..., optionally \"sd_log_E\", \"sd_log_1m2nu\"}")
+        try:
+            out[name] = dataclasses.replace(   # a value it leaves out keeps the class's
+                classes(base)[name], **{k: float(v) for k, v in given.items()
+                                        if k not in PRIOR_KEYS})
+        except (TypeError, ValueError, InputError) as e:
+            raise InputError(f"material file {path}: {name}: {e}") from e
+    return out["tissue"] if one else dataclasses.replace(base, **out)
+
+
+def material_file(material, spreads=None) -> dict:
+    """What `read_material_file` reads back as ``material``: ``{class: {"E", "nu"}}``, with
+    ``spreads`` (nθ,) where given, as the prior's (`PRIOR_KEYS`, `theta_names` order)."""
+    out = {}
+    for i, (c, m) in enumerate(classes(material).items()):
+        out[c] = {"E": m.E, "nu": m.nu}
+        if spreads is not None:
+            out[c].update(zip(PRIOR_KEYS, map(float, spreads[2 * i:2 * i + 2])))
+    return out
+
+
 def material_from_spec(spec):
-    """A material from "homogeneous", "tissues", a material file (`Tissues.from_file`), or a
+    """A material from "homogeneous", "tissues", a material file (`read_material_file`), or a
     `NeoHookean` or `Tissues` itself."""
     if isinstance(spec, (NeoHookean, Tissues)):
         return spec
@@ -192,6 +206,6 @@ def material_from_spec(spec):
     if spec == "tissues":
         return Tissues()
     if isinstance(spec, str) and spec.endswith(".json"):
-        return Tissues.from_file(spec)
+        return read_material_file(spec)
     raise InputError(f"material must be 'homogeneous', 'tissues' or a .json material file, "
                      f"got {spec!r}")

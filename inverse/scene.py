@@ -49,7 +49,7 @@ class Scene:
         degree: Lagrange degree of the displacement, 1 (default) or 2.
         material: "tissues" (skin, fat and lean tissue per cell, `fem.material.Tissues`),
             "homogeneous" (the paper's E = 5 kPa, nu = 0.47), a material file (.json,
-            `fem.material.Tissues.from_file`), a `NeoHookean` or `Tissues`, or None
+            `fem.material.read_material_file`), a `NeoHookean` or `Tissues`, or None
             (default: the anatomy's ``material``: a CT scene's tissues, a synthetic head's
             homogeneous material).
         penalty (kPa/mm), solver (preset name), options (PETSc options), and

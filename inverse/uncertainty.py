@@ -15,6 +15,7 @@ prediction bands, the linearised covariance ``S_θ Σ_θ S_θᵀ`` of each landm
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -80,7 +81,7 @@ class Prior:
 
     @classmethod
     def from_file(cls, path) -> "Prior":
-        """From a material file (`fem.material.Tissues.from_file`): its E and ν are the
+        """From a material file (`fem.material.read_material_file`): its E and ν are the
         medians, its optional ``sd_log_E`` and ``sd_log_1m2nu`` per class the spreads."""
         material = material_from_spec(str(path))
         spec = json.loads(Path(path).read_text())
@@ -120,25 +121,40 @@ def scene_prior(scene, path=None) -> Prior:
     return Prior.of(scene.eq.material)
 
 
-def theta_rows(scene, names=None, vertices: bool = False, rtol: float | None = BAND_RTOL):
-    """dx/dθ at the current equilibrium: (landmarks (Nl, 3, nθ) in ``names`` order (default
-    all), and with ``vertices`` every vertex's (n_vertices, 3, nθ) on rank 0 (None
-    elsewhere) or None), mm per unit of θ. nθ back-substitutions, or block CG on the kept
-    factor to ``rtol`` (`BAND_RTOL`; None: the tangent's own, for calibration's exact
-    gradients). Collective."""
-    names = list(scene.domain.landmarks) if names is None else list(names)
-    op = scene.domain.point_operator(names)
+@contextlib.contextmanager
+def _columns(scene, rtol):
+    """dx/dθ's nθ PETSc vectors at the current equilibrium, for the block. Collective."""
     cols = scene.eq.material_sensitivity(rtol)
     try:
+        yield cols
+    finally:
+        for c in cols:
+            c.destroy()
+
+
+def material_rows(scene, ops: list, rtol: float | None = BAND_RTOL) -> list:
+    """dx/dθ at the current equilibrium at the points of each `fem.domain.PointOperator` of
+    ``ops``: one (N_i, 3, nθ) array each, mm per unit of θ, the same on every rank. nθ
+    back-substitutions, or block CG on the kept factor to ``rtol`` (`BAND_RTOL`; None: the
+    tangent's own, for calibration's gradients). Collective."""
+    with _columns(scene, rtol) as cols:
+        return [np.stack([op.apply(c.array, offset=False) for c in cols], axis=-1)
+                for op in ops]
+
+
+def theta_rows(scene, names=None, vertices: bool = False, rtol: float | None = BAND_RTOL):
+    """dx/dθ at the current equilibrium (`material_rows`): (landmarks (Nl, 3, nθ) in
+    ``names`` order (default all), and with ``vertices`` every vertex's (n_vertices, 3, nθ)
+    on rank 0 (None elsewhere) or None). Collective."""
+    names = list(scene.domain.landmarks) if names is None else list(names)
+    op = scene.domain.point_operator(names)
+    with _columns(scene, rtol) as cols:
         rows = np.stack([op.apply(c.array, offset=False) for c in cols], axis=-1)
         every = None
         if vertices:
             parts = [scene.domain.vertex_array(c.array) for c in cols]
             every = np.stack(parts, axis=-1) if scene.domain.comm.rank == 0 else None
         return rows, every
-    finally:
-        for c in cols:
-            c.destroy()
 
 
 def covariances(rows: np.ndarray, prior: Prior) -> np.ndarray:

@@ -22,8 +22,9 @@
 
 The movements are simulated; the predicted skin is compared with the outcome's per vertex,
 per region and per landmark. Writes the report, ``distance.png`` (front and profile) and
-``distance.xdmf`` (the skin with its signed distance, for ParaView), each whole or not at
-all; a registration that fails is a one-line error and writes nothing.
+``distance.xdmf`` (the skin with its signed distance, for ParaView) and ``outcome.ply`` (the
+outcome's skin registered, in the scene's frame: a case of ``calibrate.py``), each whole or
+not at all; a registration that fails is a one-line error and writes nothing.
 """
 
 from __future__ import annotations
@@ -187,7 +188,8 @@ def main(argv=None):
               "resolution": scene.resolution, "occlusion": scene.treatment.occlusion,
               "contact": args.contact, "material": args.material, "post": str(args.post),
               "post_kind": "ct" if is_ct else "surface scan", "pre_ct": args.pre_ct,
-              "skin_distance": str(out / "distance.xdmf"),
+              "skin_distance": str(out / "distance.xdmf"), "outcome": str(out / "outcome.ply"),
+              "transforms": scene.transforms(),
               "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
               "registration": reg.report(),
               "segments": {k: {"transform": T.tolist(), "residual_mm": r, "condition": c}
@@ -209,6 +211,7 @@ def main(argv=None):
         _write_measured({k: T for k, (T, *_) in segments.items()}, out, comm)
     write_on_root(out / "distance.png", picture if comm.rank == 0 else None, comm)
     write_on_root(out / "distance.xdmf", xdmf if comm.rank == 0 else None, comm)
+    write_on_root(out / "outcome.ply", lambda path: write_surface(path, *scan), comm)
     timings["total"] = time.perf_counter() - t0
     write_json(args.report, report, comm)
     if comm.rank == 0:

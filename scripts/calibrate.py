@@ -1,0 +1,186 @@
+#!/usr/bin/env python3
+"""Learn the tissue from outcomes: fit the material parameters θ (each class's ln E and
+ln(1 - 2ν)) to validated cases (docs/uncertainty.md, `inverse.calibration`).
+
+    python3 scripts/validate.py --mesh scene.vtu --post post.ply --transforms t.json \
+        --out out/v1 --report out/v1/report.json          # a validated case
+    mpirun -n 2 python3 scripts/calibrate.py --cases out/v1/report.json [out/v2/report.json]\
+        --out out/cal --report out/cal/report.json
+    python3 scripts/simulate.py --mesh scene.vtu --material out/cal/material.json ...
+
+A case is ``validate.py``'s report: its scene (``--mesh`` or ``--case``/``--resolution``),
+the movements it simulated (its ``transforms``: given, or measured by ``--measure-bone``)
+and its outcome's skin registered in the scene's frame (``outcome.ply``). The cases fit one
+shared θ (a cohort's tissue), or one each with ``--each``; all ranks share each scene.
+
+Writes ``material.json`` (``material_<case>.json`` with ``--each``): the fitted moduli, for
+``--material``, with the posterior's spreads, for ``--prior`` of the next fit; and the report:
+θ with its posterior SD, the directions the data cannot see, and the errors before and after
+over the face and per region. Bad input is one line, exit 2, nothing written.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from scripts._common import base_parser, parse, read_json, run_main  # noqa: E402
+
+#: A 3dMD camera's noise (mm, Gaussian SD along the normal): the residual's scale.
+NOISE_MM = 0.2
+
+
+def _case(path, material, comm):
+    """A `inverse.calibration.Case` from validate.py's report at ``path``: the scene with
+    ``material`` (None: the case's), its movements, its registered outcome. Collective."""
+    import numpy as np
+
+    from inverse.calibration import Case
+    from inverse.scene import Scene
+    from meshes.errors import InputError
+    from meshes.surface import read_surface
+
+    rep = read_json(path, "case", comm)
+    missing = [k for k in ("outcome", "transforms", "registration") if not rep.get(k)]
+    if missing or not Path(rep.get("outcome", "")).is_file():
+        raise InputError(f"case {path}: not a validated case (validate.py's report with a "
+                         f"registered outcome); it lacks {missing or [rep.get('outcome')]}")
+    kw = dict(comm=comm, groups=False, contact=rep.get("contact"),
+              material=material or rep.get("material"), occlusion=rep.get("occlusion") or "free")
+    if rep.get("mesh"):
+        from meshes.external import load_tet_mesh
+
+        scene = Scene(lambda: load_tet_mesh(rep["mesh"]), **kw)
+    else:
+        scene = Scene.from_case(rep["case"], rep["resolution"], **kw)
+    p = scene.params_from_transforms({k: np.asarray(T) for k, T in rep["transforms"].items()})
+    points, tris = read_surface(rep["outcome"])
+    return Case(scene, p, points, tris, name=Path(path).parent.name)
+
+
+def _regions(case) -> dict:
+    """The face's and each region's error (validation.compare) at the case's equilibrium,
+    against its outcome as the fit corrected its registration."""
+    from inverse import validation
+    from meshes.landmarks import prominence_mm
+
+    scene = case.scene
+    part, _, _ = validation.compare(case.skin.at(scene), case.skin.rest, case.skin.tris,
+                                    scene.head_frame, scene.landmarks(rest=True), case.outcome,
+                                    case.tris, prominence_mm(scene.domain.voxel_mm,
+                                                             scene.head_frame))
+    return {"face": part["error_mm"], **part["regions"]}
+
+
+def _bounds(path, prior):
+    """(lo, hi) of θ from a JSON ``{class: {"E": [lo, hi] kPa, "nu": [lo, hi]}}``, or None;
+    `InputError` where they exclude the start (the prior's median)."""
+    import json
+
+    import numpy as np
+
+    from meshes.errors import InputError
+
+    if path is None:
+        return None
+    try:
+        spec = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read bounds file {path}: {e}") from e
+    lo, hi = np.full(len(prior.names), -np.inf), np.full(len(prior.names), np.inf)
+    for c, given in (spec.items() if isinstance(spec, dict) else []):
+        for key, f in (("E", np.log), ("nu", lambda v: np.log(1 - 2 * np.asarray(v)))):
+            if key in given:
+                name = f"{c}.{'log_E' if key == 'E' else 'log_1m2nu'}"
+                if name not in prior.names:
+                    raise InputError(f"bounds file {path}: unknown class {c!r}")
+                a, b = sorted(f(np.asarray(given[key], float)))
+                k = prior.names.index(name)
+                lo[k], hi[k] = a, b
+    if not np.all((lo <= prior.mean) & (prior.mean <= hi)):
+        bad = [n for n, a, m, b in zip(prior.names, lo, prior.mean, hi) if not a <= m <= b]
+        raise InputError(f"bounds file {path}: the start (the prior's median) lies outside "
+                         f"the bounds of {', '.join(bad)}")
+    return lo, hi
+
+
+def main(argv=None):
+    ap = base_parser(__doc__)
+    ap.add_argument("--cases", nargs="+", required=True, help="validate.py reports")
+    ap.add_argument("--each", action="store_true", help="one θ per case, not one shared")
+    ap.add_argument("--prior", help="material file whose E and nu are the start and the "
+                    "prior's medians, with optional sd_log_E, sd_log_1m2nu (default: the "
+                    "scenes' material, documented spreads)")
+    ap.add_argument("--bounds", help="JSON {class: {\"E\": [lo, hi] kPa, \"nu\": [lo, hi]}}")
+    ap.add_argument("--noise-mm", type=float, default=NOISE_MM,
+                    help="the outcome's noise, mm (the residual's scale)")
+    ap.add_argument("--max-iterations", type=int, default=20)
+    ap.add_argument("--out", required=True, help="folder for the fitted material file(s)")
+    ap.add_argument("--report", required=True, help="JSON report path")
+    args, comm = parse(ap, argv)
+    import time
+
+    import numpy as np
+
+    from fem.io import write_json
+    from fem.material import material_file, with_theta
+    from inverse.calibration import fit
+    from inverse.uncertainty import Prior, scene_prior
+
+    t0 = time.perf_counter()
+    prior = Prior.from_file(args.prior) if args.prior else None
+    material = args.prior
+    cases = [_case(c, material, comm) for c in args.cases]
+    prior = prior or scene_prior(cases[0].scene)
+    kinds = {tuple(scene_prior(c.scene).names) for c in cases}
+    if len(kinds) > 1:
+        from meshes.errors import InputError
+
+        raise InputError("the cases' materials differ in kind (tissues, homogeneous): give "
+                         "--prior, or fit them --each")
+    bounds = _bounds(args.bounds, prior)
+    groups = [[c] for c in cases] if args.each else [cases]
+    fits, files = [], {}
+    for group in groups:
+        for c in group:
+            c.solve(prior.mean)
+        before = {c.name: _regions(c) for c in group}
+        found = fit(group, prior, args.noise_mm, args.max_iterations, bounds)
+        after = {c.name: _regions(c) for c in group}
+        name = "material.json" if not args.each else f"material_{group[0].name}.json"
+        sd = np.sqrt(np.diag(found.posterior))
+        files[name] = material_file(with_theta(cases[0].scene.eq.material, found.theta), sd)
+        fits.append({"cases": [c.name for c in group], "file": str(Path(args.out) / name),
+                     "theta": dict(zip(prior.names, found.theta.tolist())),
+                     "posterior_sd": dict(zip(prior.names, sd.tolist())),
+                     "prior_sd": dict(zip(prior.names, prior.sd.tolist())),
+                     "material": files[name], "unseen": found.unseen,
+                     "iterations": found.iterations, "converged": found.converged,
+                     "history": found.history, "registration_correction": found.registration,
+                     "error_before_mm": before, "error_after_mm": after})
+    out = Path(args.out)
+    for name, spec in files.items():
+        write_json(out / name, spec, comm)
+    report = {"cases": args.cases, "n_ranks": comm.size, "noise_mm": args.noise_mm,
+              "prior": prior.report(), "fits": fits,
+              "timings_s": {"total": time.perf_counter() - t0}}
+    write_json(args.report, report, comm)
+    if comm.rank == 0:
+        for f in fits:
+            print(f"{', '.join(f['cases'])}: {f['iterations']} iterations, converged "
+                  f"{f['converged']}; fitted, with its posterior SD:")
+            for c, m in f["material"].items():
+                print(f"  {c:7s} E {m['E']:8.3f} kPa (x/÷ e^{m['sd_log_E']:.3f})   "
+                      f"nu {m['nu']:.4f}")
+            for c in f["cases"]:
+                b, a = f["error_before_mm"][c]["face"], f["error_after_mm"][c]["face"]
+                print(f"  {c}: face RMS {b['rms']:.3f} -> {a['rms']:.3f} mm")
+            for u in f["unseen"]:
+                print(f"  not seen by the data: {u['direction']} (information "
+                      f"{u['information']:.2g} of the prior's)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))
