@@ -37,6 +37,13 @@ STEP_TOL = 1e-3
 #: A direction is seen where the data's precision along it is at least this times the
 #: prior's (docs/uncertainty.md).
 SEEN_RATIO = 1.0
+#: Largest change of θ in one step (ln units: a factor 1.65), a trust region: a wild step
+#: asks the solver for a tissue it may take minutes to reach.
+MAX_STEP = 0.5
+#: Skin vertices farther than this from the outcome (mm) are not compared: the tissue moves
+#: the skin by less than 1 mm (docs/uncertainty.md), so a gap of centimetres is another
+#: surface. Fewer than `MIN_COVERED` of the skin's vertices within it: no overlap.
+MAX_GAP_MM, MIN_COVERED = 10.0, 0.1
 #: Prior SD of a case's registration correction g: rotation (rad, 0.5°) and translation
 #: (mm), the registration's own error several times over (`inverse.validation`).
 REGISTRATION_SD = np.array([np.radians(0.5)] * 3 + [0.5] * 3)
@@ -82,12 +89,12 @@ class Case:
         d, seen, q = signed_distance(after, vertex_normals(after, self.skin.tris), points,
                                      self.tris)
         if self.covered is None:
-            self.covered = seen.copy()
+            self.covered = seen & (np.abs(d) < MAX_GAP_MM)
             self.covered[np.unique(boundary_edges(self.skin.tris))] = False
-            if self.covered.sum() < 10:
-                raise InputError(f"case {self.name}: the outcome covers "
-                                 f"{int(self.covered.sum())} skin vertices of the scene: it "
-                                 "does not overlap the scene")
+            if self.covered.mean() < MIN_COVERED:
+                raise InputError(f"case {self.name}: the outcome lies within {MAX_GAP_MM:g} mm "
+                                 f"of {self.covered.mean():.0%} of the scene's skin (at least "
+                                 f"{MIN_COVERED:.0%} needed): it does not overlap the scene")
         if not jacobian:
             return d[self.covered], None
         from meshes.surface import closest_points
@@ -169,7 +176,8 @@ def fit(cases: list, prior: Prior, noise_mm: float, max_iterations: int = 20,
         H = J.T @ J / noise_mm ** 2 + P0
         g = J.T @ r / noise_mm ** 2 + P0 @ (z - mean)
         while True:   # Levenberg-Marquardt: damp until the objective falls
-            trial = z - np.linalg.solve(H + mu * np.diag(np.diag(H)), g)
+            step = -np.linalg.solve(H + mu * np.diag(np.diag(H)), g)
+            trial = z + step * min(1.0, MAX_STEP / max(np.abs(step[:nt]).max(), 1e-300))
             if lo is not None:
                 trial = np.clip(trial, lo, hi)
             try:

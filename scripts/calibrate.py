@@ -73,6 +73,21 @@ def _regions(case) -> dict:
     return {"face": part["error_mm"], **part["regions"]}
 
 
+def _ratios(names, theta, posterior) -> dict:
+    """What the outcome sees best: each class's E over the first class's (``fat/skin``...),
+    with the posterior SD of its log."""
+    import numpy as np
+
+    k = [i for i, n in enumerate(names) if n.endswith(".log_E")]
+    out = {}
+    for i in k[1:]:
+        d = np.zeros(len(names))
+        d[i], d[k[0]] = 1.0, -1.0
+        key = f"{names[i].split('.')[0]}/{names[k[0]].split('.')[0]}"
+        out[key] = {"value": float(np.exp(d @ theta)), "sd_log": float(np.sqrt(d @ posterior @ d))}
+    return out
+
+
 def _bounds(path, prior):
     """(lo, hi) of θ from a JSON ``{class: {"E": [lo, hi] kPa, "nu": [lo, hi]}}``, or None;
     `InputError` where they exclude the start (the prior's median)."""
@@ -132,6 +147,10 @@ def main(argv=None):
     prior = Prior.from_file(args.prior) if args.prior else None
     material = args.prior
     cases = [_case(c, material, comm) for c in args.cases]
+    seen = {}
+    for c in cases:   # each named by its folder, and unique
+        seen[c.name] = seen.get(c.name, 0) + 1
+        c.name += f"-{seen[c.name]}" if seen[c.name] > 1 else ""
     prior = prior or scene_prior(cases[0].scene)
     kinds = {tuple(scene_prior(c.scene).names) for c in cases}
     if len(kinds) > 1:
@@ -143,8 +162,9 @@ def main(argv=None):
     groups = [[c] for c in cases] if args.each else [cases]
     fits, files = [], {}
     for group in groups:
-        for c in group:
+        for c in group:   # at the start, checked for overlap
             c.solve(prior.mean)
+            c.residual(jacobian=False)
         before = {c.name: _regions(c) for c in group}
         found = fit(group, prior, args.noise_mm, args.max_iterations, bounds)
         after = {c.name: _regions(c) for c in group}
@@ -152,6 +172,7 @@ def main(argv=None):
         sd = np.sqrt(np.diag(found.posterior))
         files[name] = material_file(with_theta(cases[0].scene.eq.material, found.theta), sd)
         fits.append({"cases": [c.name for c in group], "file": str(Path(args.out) / name),
+                     "ratios": _ratios(prior.names, found.theta, found.posterior),
                      "theta": dict(zip(prior.names, found.theta.tolist())),
                      "posterior_sd": dict(zip(prior.names, sd.tolist())),
                      "prior_sd": dict(zip(prior.names, prior.sd.tolist())),
@@ -173,6 +194,8 @@ def main(argv=None):
             for c, m in f["material"].items():
                 print(f"  {c:7s} E {m['E']:8.3f} kPa (x/÷ e^{m['sd_log_E']:.3f})   "
                       f"nu {m['nu']:.4f}")
+            for k, r in f["ratios"].items():
+                print(f"  E {k:12s} {r['value']:.4f} (x/÷ e^{r['sd_log']:.3f})")
             for c in f["cases"]:
                 b, a = f["error_before_mm"][c]["face"], f["error_after_mm"][c]["face"]
                 print(f"  {c}: face RMS {b['rms']:.3f} -> {a['rms']:.3f} mm")
