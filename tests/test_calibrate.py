@@ -170,3 +170,48 @@ def test_bad_calibration_input_gets_one_line(synthetic, tmp_path, bad):
     r = _run(CALIBRATE + args + ["--out", str(out), "--report", str(out / "report.json")])
     _one_line_error(r, match)
     assert not out.exists()
+
+
+@needs_cranium
+def test_taylor_on_craniums_scene(cranium):
+    """dx/dθ's landmark rows on Cranium's scene (its head frame tilted 6° from the scanner's,
+    the lips sliding on the teeth, skin, fat and lean tissue), at a LeFort I with pitch:
+    remainders of rate 1 without them and 2 with them."""
+    from test_uncertainty import HS, _check_rates, _direction
+
+    from fem.material import theta
+    from fem.verification import taylor_test
+    from inverse.scene import Scene
+    from inverse.uncertainty import set_theta, theta_rows
+    from meshes.external import load_tet_mesh
+
+    d, _, _ = cranium
+    scene = Scene(lambda: load_tet_mesh(d / "ct" / "scene.vtu"), equilibrium=dict(
+        method="newton", xtol=1e-10, frtol=1e-10))
+    assert scene.contact == "sliding" and scene.head_frame.tilt_deg()["pitch_deg"] > 3
+    p = scene.param_vector({"maxilla.advance_mm": 4, "maxilla.pitch_deg": 3})
+    scene.solve(p)
+    th0 = theta(scene.eq.material)
+    rows, _ = theta_rows(scene, rtol=None)
+
+    def landmarks_at(t):
+        set_theta(scene, t)
+        scene.solve(p)
+        return np.array(list(scene.landmarks().values()))
+
+    d_theta = _direction(len(th0), 3)
+    _check_rates(*taylor_test(landmarks_at, th0, d_theta, rows @ d_theta, HS))
+
+
+@pytest.mark.mpi
+def test_calibration_is_the_same_on_two_ranks(synthetic, tmp_path):
+    """calibrate.py under mpirun -n 2: the same tissue as on one rank."""
+    from test_scripts import _mpirun
+
+    d, (case,), one = synthetic
+    out = tmp_path / "cal2"
+    _ok(_mpirun(2) + CALIBRATE + ["--cases", str(case["case"]), "--noise-mm", str(NOISE_MM),
+                                  "--out", str(out), "--report", str(out / "report.json")])
+    two = json.loads((out / "report.json").read_text())
+    for a, b in zip(one["fits"][0]["theta"].values(), two["fits"][0]["theta"].values()):
+        assert abs(a - b) < 1e-6, (one["fits"][0]["theta"], two["fits"][0]["theta"])
