@@ -1,7 +1,7 @@
 """The tissue's parameters θ as differentiable parameters (issue 46, `inverse.uncertainty`):
 dx/dθ by Taylor tests on a block, on the synthetic head (glued, and sliding on tissues at a
-rotated treatment), the prior, and the bands' 95 % radius. Cranium's scene and 1 against 2
-ranks: tests/test_bands.py, through the scripts."""
+rotated treatment), the prior, and the bands' 95 % radius. Cranium's scene:
+tests/test_calibrate.py; 1 against 2 ranks: tests/test_scripts.py, through the scripts."""
 
 import dataclasses
 import json
