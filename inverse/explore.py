@@ -42,9 +42,11 @@ class SkinPredictor:
         x0: (N, 3) skin positions at p0, x_rest at rest, mm. S: (N, 3, Np) mm per unit.
         p0: (Np,) parameters of the equilibrium. It keeps x(p0) and dx/dp on the volume
         (Np + 1 vectors), so corrections do not depend on where the scene is afterwards.
+        band (N,), lm_band {name: mm}: with a ``prior`` (`inverse.uncertainty.Prior`), the
+        tissue's 95 % radius at p0 at each skin vertex and landmark; else None.
     """
 
-    def __init__(self, scene):
+    def __init__(self, scene, prior=None):
         self.scene, self.eq = scene, scene.eq
         dom = scene.domain
         self.vertices = dom.boundary_vertices()
@@ -61,6 +63,13 @@ class SkinPredictor:
         self.lm_op = dom.point_operator(self.landmark_names)
         self.lm0 = self.lm_op.apply(self.eq.u_eq.array)
         self.lm_S = point_sensitivity(self.eq, self.lm_op)
+        self.band, self.lm_band = None, None
+        if prior is not None:   # the tissue's 95 % radius at p0 (`inverse.uncertainty`)
+            from inverse.uncertainty import covariances, material_rows, radius95
+
+            skin, lms = material_rows(scene, [self.op, self.lm_op])
+            self.band = radius95(covariances(skin, prior))
+            self.lm_band = dict(zip(self.landmark_names, radius95(covariances(lms, prior))))
 
     def predict(self, dp) -> np.ndarray:
         """Plain first-order skin (N, 3) mm at p0 + dp. Local, no communication."""

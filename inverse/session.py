@@ -68,10 +68,16 @@ class Session:
         p0: (Np,) start equilibrium (default 0).
         targets: {landmark: entry} (`check_targets`) shown and planned to (default: the
             case's goal, none for an external mesh).
+        prior: the tissue's prior of the bands shown (`inverse.uncertainty.Prior`; default:
+            the scene's, `scene_prior`; False: no band).
     """
 
-    def __init__(self, scene, make_scene=None, p0=None, targets=None, validation=None):
+    def __init__(self, scene, make_scene=None, p0=None, targets=None, validation=None,
+                 prior=None):
+        from inverse.uncertainty import scene_prior
+
         self.validation = validation   # shown as it is (`payload`)
+        self.prior = scene_prior(scene) if prior is None else (prior or None)
         self.occlusion = "free" if scene.treatment.occlusion is None else "final"
         self._make_scene, self.scenes = make_scene, {self.occlusion: scene}
         self.rest_landmarks = scene.landmarks(rest=True)   # the same in every scene
@@ -121,7 +127,8 @@ class Session:
         superior, scene frame) for the page's Front and Profile views, the bone (`_bone`),
         and a validation's map where the session has one (``validation``:
         ``signed_distance_mm`` (N,) per skin vertex, None where the scan does not hold it,
-        and its ``error_mm``; `scripts/validate.py`)."""
+        and its ``error_mm``; `scripts/validate.py`), and the tissue's band at p0 (``band``:
+        ``r95_mm`` (N,) per skin vertex and per landmark, `inverse.uncertainty`)."""
         scene, pred = self.scene, self.pred
         tr = scene.treatment
         return {"param_names": tr.names, "units": [q.unit for q in tr.params],
@@ -133,7 +140,9 @@ class Session:
                 "landmark_sensitivity": pred.lm_S.tolist(),
                 "targets": self.targets,
                 "head_axes": scene.head_frame.rotation.T.tolist(),
-                "bone": self._bone(), "validation": self.validation}
+                "bone": self._bone(), "validation": self.validation,
+                "band": None if pred.band is None else {
+                    "r95_mm": pred.band.tolist(), "landmarks": pred.lm_band}}
 
     def _bone(self) -> dict:
         """The bone under the skin for the page (GET /api/scene's ``bone``): its surface at
@@ -204,7 +213,7 @@ class Session:
         self.scene.solve(p)
         if self.pred is not None:
             self.pred.destroy()
-        self.pred = SkinPredictor(self.scene)
+        self.pred = SkinPredictor(self.scene, self.prior)
         return {"p0": self.pred.p0.tolist(), "seconds": time.perf_counter() - t}
 
     def plan(self, targets: dict, occlusion: str, progress=None, tikhonov: float = TIKHONOV,

@@ -200,6 +200,10 @@ def test_explores_a_plan_py_report(tmp_path):
     for name, row in plan["landmarks"].items():
         np.testing.assert_allclose(scene["targets"][name], row["target"], atol=1e-12)
         np.testing.assert_allclose(scene["landmarks"][name], row["after"], atol=1e-3)
+        # the band the page shows at the plan is the plan's own (issue 46)
+        assert scene["band"]["landmarks"][name] == pytest.approx(
+            plan["bands"]["landmarks"][name]["r95_mm"], rel=0.01, abs=1e-4)
+    assert max(scene["band"]["r95_mm"]) > 0
 
 
 @pytest.mark.mpi
@@ -301,14 +305,31 @@ def test_the_page_in_headless_chromium(request, tmp_path, which):
                 "return Array.from(window.explorer.skinPositions())")).reshape(-1, 3)
             np.testing.assert_allclose(drawn, _first_order(scene, S, p), atol=1e-3)
             if which == "cranium":
-                table = dict(tuple(row.text.split()) for row in driver.find_elements(
-                    "css selector", "#landmarks tbody tr"))
+                cells = [row.text.split() for row in driver.find_elements(
+                    "css selector", "#landmarks tbody tr")]
+                table = {c[0]: c[1] for c in cells}
+                band = {c[0]: float(c[2]) for c in cells}   # issue 46: the band at p0
+                assert all(band[n] == pytest.approx(scene["band"]["landmarks"][n], abs=0.006)
+                           for n in band), band
                 now = _first_order_landmarks(scene, p)
                 assert scene["targets"] == targets and set(table) == set(targets), table
                 assert float(table["Sn"]) == pytest.approx(
                     abs((now["Sn"] - targets["Sn"]["at"]) @ anterior), abs=0.006), table
                 assert float(table["Prn"]) == pytest.approx(
                     np.linalg.norm(now["Prn"] - targets["Prn"]), abs=0.006), table
+            # the band map (issue 46): its legend tops at the widest band of a skin vertex,
+            # none at rest (p0 = 0: nothing moves, whatever the tissue)
+            driver.execute_script("const c = document.getElementById('colour');"
+                                  "c.value = 'band'; c.onchange();")
+            t0 = time.monotonic()
+            while not driver.find_element("id", "legend").is_displayed():
+                assert time.monotonic() - t0 < 10
+                time.sleep(0.05)
+            top = float(driver.find_element("id", "legend-hi").text)
+            assert top == pytest.approx(max(scene["band"]["r95_mm"]), abs=0.006)
+            assert (top > 0) == any(scene["p0"]), (top, scene["p0"])
+            driver.execute_script("const c = document.getElementById('colour');"
+                                  "c.value = 'skin'; c.onchange();")
             shot.parent.mkdir(parents=True, exist_ok=True)
             driver.save_screenshot(str(shot))
             assert driver.execute_script("return window.explorer.bonePositions()") is None

@@ -127,6 +127,9 @@ async function loadScene() {
     new Float32Array(state.bone.rest.length), 3));
   boneGeometry.setIndex(s.bone.triangles.flat());
   $('occlusion').value = s.occlusion;
+  state.band = s.band && Float32Array.from(s.band.r95_mm);
+  state.lmBand = s.band && s.band.landmarks;
+  $('colour').querySelector('option[value="band"]').disabled = !state.band;
   state.validation = s.validation && Float32Array.from(
     s.validation.signed_distance_mm, (v) => (v === null ? NaN : Math.abs(v)));
   if (state.validation && !$('colour').querySelector('option[value="validation"]')) {
@@ -201,6 +204,9 @@ function colourise() {
   } else if ($('colour').value === 'validation') {
     value = (i) => state.validation[i];
     title = '|predicted - real skin| mm (validate.py; grey: not in the scan)';
+  } else if ($('colour').value === 'band') {
+    value = (i) => state.band[i];
+    title = "the tissue's 95 % band at p0, mm (its prior: docs/uncertainty.md)";
   } else {
     const ref = $('colour').value === 'rest' ? state.rest : state.x0;
     value = (i) => Math.hypot(x[3 * i] - ref[3 * i], x[3 * i + 1] - ref[3 * i + 1],
@@ -272,11 +278,13 @@ function updateLandmarks(points) {
     const t = state.targets && state.targets[n];
     if (t) {
       const d = targetDistance(t, points.slice(3 * i, 3 * i + 3));
-      rows.push(`<tr><td>${n}</td><td class="num">${d.toFixed(2)}</td></tr>`);
+      const band = state.lmBand ? state.lmBand[n].toFixed(2) : '–';
+      rows.push(`<tr><td>${n}</td><td class="num">${d.toFixed(2)}</td>`
+        + `<td class="num">${band}</td></tr>`);
     }
   });
   $('landmarks').tBodies[0].innerHTML = rows.join('') ||
-    '<tr><td colspan="2">no targets</td></tr>';
+    '<tr><td colspan="3">no targets</td></tr>';
 }
 
 function showBone() {   // the bone under a see-through skin, or the skin alone
