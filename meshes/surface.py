@@ -45,8 +45,8 @@ def write_surface(path, points: np.ndarray, tris: np.ndarray, point_data=None) -
     """A surface to ``path`` (any meshio format: .ply, .stl, .xdmf ...)."""
     import meshio
 
-    meshio.write(str(path), meshio.Mesh(points, [("triangle", tris)],
-                                        point_data=point_data or {}))
+    meshio.write(str(path), meshio.Mesh(points, [("triangle", np.asarray(tris, np.int32))],
+                                        point_data=point_data or {}))   # PLY: 32-bit
 
 
 def triangle_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
