@@ -13,8 +13,8 @@
   ``validate.py``, ``calibrate.py``: the moduli's ratios found against the truth's, with
   their posterior SD, the face's error before and after, the time.
 * Robust plans: ``plan.py --robust`` at ``--resolution`` on class3-asym (its goal) and
-  Cranium (``--goal midface-advance``, its LeFort I advance and vertical): E[T] of the nominal and the robust plan, the largest
-  change of a parameter, the time.
+  Cranium (``--goal midface-advance``, its LeFort I advance and vertical): E[T] of the
+  nominal and the robust plan, the largest change of a parameter, the time.
 """
 
 from __future__ import annotations
