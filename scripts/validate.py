@@ -23,8 +23,9 @@
 The movements are simulated; the predicted skin is compared with the outcome's per vertex,
 per region and per landmark. Writes the report, ``distance.png`` (front and profile) and
 ``distance.xdmf`` (the skin with its signed distance, for ParaView) and ``outcome.ply`` (the
-outcome's skin registered, in the scene's frame: a case of ``calibrate.py``), each whole or
-not at all; a registration that fails is a one-line error and writes nothing.
+outcome's skin registered, in the scene's frame: a case of ``calibrate.py``; with a CT also
+``outcome_rest.ply``, the pre-operative CT's skin extracted alike), each whole or not at
+all; a registration that fails is a one-line error and writes nothing.
 """
 
 from __future__ import annotations
@@ -113,9 +114,12 @@ def _ct_outcome(args, scene, skin, frame, landmarks, comm) -> dict:
             corners = apply(to_post, lo + box * (hi - lo))
             points, tris = postop.skin_surface(post, thresholds["skin_hu"],
                                                corners.min(axis=0), corners.max(axis=0))
+            # the pre-operative CT's skin, extracted alike (the scene's frame is its own):
+            # calibrate.py takes the voxel's bias out with it (docs/uncertainty.md)
+            rest = postop.skin_surface(pre, thresholds["skin_hu"], lo, hi)
             timings["skin_surface"] = time.perf_counter() - t
             out = {"registration": reg, "segments": segments, "timings": timings,
-                   "scan": (apply(reg.transform, points), tris)}
+                   "scan": (apply(reg.transform, points), tris), "scan_rest": rest}
         except MeshError as e:
             out = str(e)
     out = comm.bcast(out, root=0)
@@ -161,6 +165,7 @@ def main(argv=None):
     if is_ct:
         ct = _ct_outcome(args, scene, skin, frame, landmarks_rest, comm)
         reg, segments, scan = ct["registration"], ct["segments"], ct["scan"]
+        scan_rest = ct["scan_rest"]
         timings.update(ct["timings"])
     else:
         reg = validation.register_scan(scan_points, scan_tris, rest, tris, validation.stable_mask(
@@ -189,6 +194,7 @@ def main(argv=None):
               "contact": args.contact, "material": args.material, "post": str(args.post),
               "post_kind": "ct" if is_ct else "surface scan", "pre_ct": args.pre_ct,
               "skin_distance": str(out / "distance.xdmf"), "outcome": str(out / "outcome.ply"),
+              "outcome_rest": str(out / "outcome_rest.ply") if is_ct else None,
               "transforms": scene.transforms(),
               "n_vertices": scene.domain.n_vertices, "n_ranks": comm.size,
               "registration": reg.report(),
@@ -212,6 +218,9 @@ def main(argv=None):
     write_on_root(out / "distance.png", picture if comm.rank == 0 else None, comm)
     write_on_root(out / "distance.xdmf", xdmf if comm.rank == 0 else None, comm)
     write_on_root(out / "outcome.ply", lambda path: write_surface(path, *scan), comm)
+    if is_ct:
+        write_on_root(out / "outcome_rest.ply", lambda path: write_surface(path, *scan_rest),
+                      comm)
     timings["total"] = time.perf_counter() - t0
     write_json(args.report, report, comm)
     if comm.rank == 0:

@@ -215,3 +215,47 @@ def test_calibration_is_the_same_on_two_ranks(synthetic, tmp_path):
     two = json.loads((out / "report.json").read_text())
     for a, b in zip(one["fits"][0]["theta"].values(), two["fits"][0]["theta"].values()):
         assert abs(a - b) < 1e-6, (one["fits"][0]["theta"], two["fits"][0]["theta"])
+
+
+@needs_cranium
+def test_calibration_from_a_post_operative_ct(cranium):
+    """The truth as a post-operative CT (Cranium warped by the simulated outcome, misplaced
+    and noised: `inverse.postop.simulated_postop`), validated with --pre-ct: the CT skin's
+    voxel bias comes off the residual (with the pre-operative CT's skin extracted alike),
+    and what is left of it is reported against the noise given. Its ratios stay within 3
+    posterior SDs of the truth's."""
+    from scipy.spatial.transform import Rotation
+
+    from fem.material import Tissues
+    from inverse.postop import simulated_postop
+    from inverse.scene import Scene
+    from meshes.ct import parse_scene_file
+    from meshes.external import load_tet_mesh
+    from meshes.volume import read_volume, write_volume
+
+    d, (case, _), _ = cranium
+    mesh, ct = d / "ct" / "scene.vtu", d / "ct-outcome"
+    ct.mkdir()
+    (ct / "truth.json").write_text(json.dumps(TRUTH))
+    truth = Scene(lambda: load_tet_mesh(mesh), material=str(ct / "truth.json"))
+    p = truth.param_vector({"maxilla.advance_mm": 5, "maxilla.vertical_mm": -1})
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = Rotation.from_rotvec(np.radians(MISPLACE[0])).as_matrix(), MISPLACE[1]
+    cuts = parse_scene_file(ROOT / "meshes" / "examples" / "cranium.json")[1]
+    write_volume(simulated_postop(truth, p, read_volume(CRANIUM), cuts, M, 20.0), ct / "post.mha")
+    _ok(VALIDATE + ["--mesh", str(mesh), *case["moves"], "--post", str(ct / "post.mha"),
+                    "--pre-ct", str(CRANIUM), "--out", str(ct / "v"), "--report",
+                    str(ct / "v" / "report.json")])
+    _ok(CALIBRATE + ["--cases", str(ct / "v" / "report.json"), "--noise-mm", "0.05",
+                     "--out", str(ct / "cal"), "--report", str(ct / "cal" / "report.json")])
+    (fitted,) = json.loads((ct / "cal" / "report.json").read_text())["fits"]
+    rms = fitted["residual_rms_mm"]["before"]["v"]
+    assert rms < 0.1 < fitted["error_before_mm"]["v"]["face"]["rms"], fitted   # bias off
+    assert fitted["fit"]["residual_over_noise"] == pytest.approx(
+        fitted["residual_rms_mm"]["after"]["v"] / 0.05)
+    true_E = {c: TRUTH.get(c, {}).get("E", getattr(Tissues(), c).E) for c in ("skin", "fat",
+                                                                              "muscle")}
+    for key, r in fitted["ratios"].items():
+        c = key.split("/")[0]
+        error = np.log(r["value"] / (true_E[c] / true_E["skin"]))
+        assert abs(error) < 3 * r["sd_log"], (key, error, r)
