@@ -200,7 +200,8 @@ class EnergyForms:
                 for f, r in zip(rates, rate):
                     self._fill_cells(f, share[:, k] * r)
                 vec = self.b.duplicate()
-                vec.set(0.0)
+                with vec.localForm() as local:   # ghosts too: assembly adds into them
+                    local.set(0.0)
                 compat.assemble_vector(vec, form)
                 vec.ghostUpdate(PETSc.InsertMode.ADD, PETSc.ScatterMode.REVERSE)
                 compat.set_bc(vec, self.bcs, x, 0.0)

@@ -163,9 +163,8 @@ class Linearisation:
         on all columns at once, preconditioned by the kept factorisation as it is (of K at
         a nearby iterate; one MatMatSolve per iteration for every column), to the relative
         residual ``rtol`` (default: the tangent KSP's): a list of new vectors, or None where
-        a column needs more
-        than ``max_its`` iterations, K is not positive definite along a direction, or the
-        factorisation serves no block solve. Collective."""
+        a column needs more than ``max_its`` iterations, K is not positive definite along a
+        direction, or the factorisation serves no block solve. Collective."""
         if not self._blockable(columns):
             return None
         K = self.matrix(p, x)
