@@ -146,38 +146,70 @@ class Fit:
     registration: dict
 
 
-def _stack(cases, z, n_theta: int, jacobian: bool):
-    """Residuals per case and the joint Jacobian (K, nθ + 6 n_cases) at z = (θ, g_1, ...)."""
-    rs, js = [], []
-    for i, c in enumerate(cases):
-        c.g = z[n_theta + 6 * i:n_theta + 6 * i + 6]
-        c.solve(z[:n_theta])
-        r, j = c.residual(jacobian)
-        rs.append(r)
-        if jacobian:
+@dataclasses.dataclass
+class Cases:
+    """The cases of one fit, over groups of ranks: ``local`` [(index, `Case`)], the cases
+    this rank's group holds (their scenes on the group's communicator), ``names`` of all
+    the fit's cases in order, and ``comm`` every rank of the fit. All ranks sharing every
+    scene: `Cases.shared`."""
+
+    local: list
+    names: list
+    comm: object
+
+    @classmethod
+    def shared(cls, cases: list, comm) -> "Cases":
+        return cls(list(enumerate(cases)), [c.name for c in cases], comm)
+
+    def stack(self, z, n_theta: int, jacobian: bool):
+        """Residuals per case (in order) and the joint Jacobian (K, nθ + 6 n_cases) at z =
+        (θ, g_1, ...), each group solving its cases, then shared with every rank. An error
+        in one group is raised on every rank. Collective over ``comm``."""
+        mine, error = [], None
+        for i, c in self.local:
+            c.g = z[n_theta + 6 * i:n_theta + 6 * i + 6]
+            try:
+                c.solve(z[:n_theta])
+                mine.append((i, *c.residual(jacobian)))
+            except (SolverError, InputError) as e:   # the same on the group's ranks
+                error = (type(e), str(e))
+                break
+        lead = all(c.scene.domain.comm.rank == 0 for _, c in self.local)
+        parts = self.comm.allgather((mine if lead else [], error))
+        for _, err in parts:
+            if err is not None:
+                raise err[0](err[1])
+        got = {i: (r, j) for part, _ in parts for i, r, j in part}
+        rs = [got[i][0] for i in range(len(self.names))]
+        if not jacobian:
+            return rs, None
+        js = []
+        for i in range(len(self.names)):
+            r, j = got[i]
             block = np.zeros((len(r), len(z)))
             block[:, :n_theta] = j[:, :n_theta]
             block[:, n_theta + 6 * i:n_theta + 6 * i + 6] = j[:, n_theta:]
             js.append(block)
-    return rs, (np.vstack(js) if jacobian else None)
+        return rs, np.vstack(js)
 
 
-def fit(cases: list, prior: Prior, noise_mm: float, max_iterations: int = 20,
+def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
         bounds=None) -> Fit:
     """θ of the cases together (one shared tissue) from the prior's median, with each case's
     registration correction (module docstring), each step projected into ``bounds``
-    ((lo, hi), θ's units) where given. Collective; leaves every scene at the fitted
-    material."""
+    ((lo, hi), θ's units) where given. Collective over ``cases.comm``; leaves every scene at
+    the fitted material."""
     if not (np.isfinite(noise_mm) and noise_mm > 0):
         raise InputError(f"the outcome's noise must be a positive number of mm, got {noise_mm}")
     nt = len(prior.mean)
-    mean = np.concatenate([prior.mean, np.zeros(6 * len(cases))])
-    P0 = np.diag(1.0 / np.concatenate([prior.sd, np.tile(REGISTRATION_SD, len(cases))]) ** 2)
+    n = len(cases.names)
+    mean = np.concatenate([prior.mean, np.zeros(6 * n)])
+    P0 = np.diag(1.0 / np.concatenate([prior.sd, np.tile(REGISTRATION_SD, n)]) ** 2)
     lo, hi = (None, None) if bounds is None else (
-        np.concatenate([b, np.full(6 * len(cases), s)]) for b, s in zip(bounds, (-np.inf, np.inf)))
+        np.concatenate([b, np.full(6 * n, s)]) for b, s in zip(bounds, (-np.inf, np.inf)))
     z, mu = mean.copy(), 1e-3
-    rs, J = _stack(cases, z, nt, True)
-    before = {c.name: float(np.sqrt(np.mean(r ** 2))) for c, r in zip(cases, rs)}
+    rs, J = cases.stack(z, nt, True)
+    before = dict(zip(cases.names, (float(np.sqrt(np.mean(r ** 2))) for r in rs)))
 
     def objective(res, t):
         r = np.concatenate(res)
@@ -195,7 +227,7 @@ def fit(cases: list, prior: Prior, noise_mm: float, max_iterations: int = 20,
             if lo is not None:
                 trial = np.clip(trial, lo, hi)
             try:
-                trial_value = objective(_stack(cases, trial, nt, False)[0], trial)
+                trial_value = objective(cases.stack(trial, nt, False)[0], trial)
             except (SolverError, InputError):
                 trial_value = np.inf
             if trial_value < value or mu > 1e8:
@@ -207,11 +239,11 @@ def fit(cases: list, prior: Prior, noise_mm: float, max_iterations: int = 20,
         mu = max(mu / 10, 1e-9)
         step, z, value = trial - z, trial, trial_value
         history.append(value)
-        rs, J = _stack(cases, z, nt, True)
+        rs, J = cases.stack(z, nt, True)
         if np.abs(step[:nt]).max() < STEP_TOL:
             converged = True
             break
-    rs, J = _stack(cases, z, nt, True)
+    rs, J = cases.stack(z, nt, True)
     info = J.T @ J / noise_mm ** 2
     posterior = np.linalg.inv(info + P0)[:nt, :nt]
     # what the data see of θ, the registrations being free: the Schur complement
@@ -225,6 +257,6 @@ def fit(cases: list, prior: Prior, noise_mm: float, max_iterations: int = 20,
             unseen.append({"direction": {n: round(float(w), 3) for n, w in
                                          zip(prior.names, v) if abs(w) > 0.2},
                            "information": ratio})
-    after = {c.name: float(np.sqrt(np.mean(r ** 2))) for c, r in zip(cases, rs)}
+    after = dict(zip(cases.names, (float(np.sqrt(np.mean(r ** 2))) for r in rs)))
     return Fit(z[:nt], posterior, unseen, before, after, it, converged, history,
-               {c.name: c.g.tolist() for c in cases})
+               {k: z[nt + 6 * i:nt + 6 * i + 6].tolist() for i, k in enumerate(cases.names)})

@@ -11,7 +11,8 @@ ln(1 - 2ν)) to validated cases (docs/uncertainty.md, `inverse.calibration`).
 A case is ``validate.py``'s report: its scene (``--mesh`` or ``--case``/``--resolution``),
 the movements it simulated (its ``transforms``: given, or measured by ``--measure-bone``)
 and its outcome's skin registered in the scene's frame (``outcome.ply``). The cases fit one
-shared θ (a cohort's tissue), or one each with ``--each``; all ranks share each scene.
+shared θ (a cohort's tissue), or one each with ``--each``; all ranks share each scene, or
+with ``--split`` the ranks split into groups that take a case each.
 
 Writes ``material.json`` (``material_<case>.json`` with ``--each``): the fitted moduli, for
 ``--material``, with the posterior's spreads, for ``--prior`` of the next fit; and the report:
@@ -35,9 +36,27 @@ NOISE_MM = 0.2
 FIT_RATIO = 1.5
 
 
-def _case(path, material, comm):
-    """A `inverse.calibration.Case` from validate.py's report at ``path``: the scene with
-    ``material`` (None: the case's), its movements, its registered outcome. Collective."""
+def _names(paths) -> list:
+    """Each case's name: its report's folder, made unique (``v``, ``v-2``)."""
+    seen, out = {}, []
+    for path in paths:
+        name = Path(path).parent.name
+        seen[name] = seen.get(name, 0) + 1
+        out.append(name + (f"-{seen[name]}" if seen[name] > 1 else ""))
+    return out
+
+
+def _gathered(cases, what) -> dict:
+    """{case name: what(case)} over every group's cases. Collective over ``cases.comm``."""
+    mine = {cases.names[i]: what(c) for i, c in cases.local}
+    lead = all(c.scene.domain.comm.rank == 0 for _, c in cases.local)
+    return {k: v for part in cases.comm.allgather(mine if lead else {}) for k, v in part.items()}
+
+
+def _case(path, material, comm, name):
+    """A `inverse.calibration.Case` ``name`` from validate.py's report at ``path``: the scene
+    with ``material`` (None: the case's) on ``comm``, its movements, its registered
+    outcome. Collective over ``comm``."""
     import numpy as np
 
     from inverse.calibration import Case
@@ -61,7 +80,7 @@ def _case(path, material, comm):
     p = scene.params_from_transforms({k: np.asarray(T) for k, T in rep["transforms"].items()})
     points, tris = read_surface(rep["outcome"])
     rest = read_surface(rep["outcome_rest"]) if rep.get("outcome_rest") else None
-    return Case(scene, p, points, tris, name=Path(path).parent.name, rest=rest)
+    return Case(scene, p, points, tris, name=name, rest=rest)
 
 
 def _regions(case) -> dict:
@@ -142,6 +161,9 @@ def main(argv=None):
     ap = base_parser(__doc__)
     ap.add_argument("--cases", nargs="+", required=True, help="validate.py reports")
     ap.add_argument("--each", action="store_true", help="one θ per case, not one shared")
+    ap.add_argument("--split", action="store_true",
+                    help="under mpirun, the ranks in groups, each taking its cases (round "
+                    "robin), instead of all ranks sharing every scene")
     ap.add_argument("--prior", help="material file whose E and nu are the start and the "
                     "prior's medians, with optional sd_log_E, sd_log_1m2nu (default: the "
                     "scenes' material, documented spreads)")
@@ -158,52 +180,58 @@ def main(argv=None):
 
     from fem.io import write_json
     from fem.material import material_file, with_theta
-    from inverse.calibration import fit
+    from inverse.calibration import Cases, fit
     from inverse.uncertainty import Prior, scene_prior
 
     t0 = time.perf_counter()
-    prior = Prior.from_file(args.prior) if args.prior else None
-    material = args.prior
-    cases = [_case(c, material, comm) for c in args.cases]
-    seen = {}
-    for c in cases:   # each named by its folder, and unique
-        seen[c.name] = seen.get(c.name, 0) + 1
-        c.name += f"-{seen[c.name]}" if seen[c.name] > 1 else ""
-    prior = prior or scene_prior(cases[0].scene)
-    kinds = {tuple(scene_prior(c.scene).names) for c in cases}
-    if len(kinds) > 1:
+    names = _names(args.cases)
+    n_groups = min(comm.size, len(args.cases)) if args.split else 1
+    color = comm.rank % n_groups
+    group = comm.Split(color, comm.rank) if n_groups > 1 else comm
+    mine = [(i, _case(path, args.prior, group, names[i])) for i, path in enumerate(args.cases)
+            if i % n_groups == color]
+    prior = comm.bcast(Prior.from_file(args.prior) if args.prior else
+                       scene_prior(mine[0][1].scene) if comm.rank == 0 else None, root=0)
+    if len({k for ks in comm.allgather([tuple(scene_prior(c.scene).names) for _, c in mine])
+            for k in ks}) > 1:
         from meshes.errors import InputError
 
         raise InputError("the cases' materials differ in kind (tissues, homogeneous): give "
                          "--prior, or fit them --each")
     bounds = _bounds(args.bounds, prior)
-    groups = [[c] for c in cases] if args.each else [cases]
-    fits, files = [], {}
-    for group in groups:
-        for c in group:   # at the start, checked for overlap
-            c.solve(prior.mean)
-            c.residual(jacobian=False)
-        before = {c.name: _regions(c) for c in group}
-        found = fit(group, prior, args.noise_mm, args.max_iterations, bounds)
-        after = {c.name: _regions(c) for c in group}
-        name = "material.json" if not args.each else f"material_{group[0].name}.json"
+    sets = ([Cases([(0, c)], [c.name], group) for _, c in mine] if args.each else
+            [Cases(mine, names, comm)])
+    fits = []
+    for cases in sets:
+        cases.stack(np.concatenate([prior.mean, np.zeros(6 * len(cases.names))]),
+                    len(prior.mean), False)   # at the start: each outcome overlaps its scene
+        before = _gathered(cases, _regions)
+        found = fit(cases, prior, args.noise_mm, args.max_iterations, bounds)
+        after = _gathered(cases, _regions)
+        name = "material.json" if not args.each else f"material_{cases.names[0]}.json"
         sd = np.sqrt(np.diag(found.posterior))
-        files[name] = material_file(with_theta(cases[0].scene.eq.material, found.theta), sd)
-        fits.append({"cases": [c.name for c in group], "file": str(Path(args.out) / name),
+        spec = material_file(with_theta(cases.local[0][1].scene.eq.material, found.theta), sd)
+        fits.append({"cases": cases.names, "file": str(Path(args.out) / name),
                      "ratios": _ratios(prior.names, found.theta, found.posterior),
                      "theta": dict(zip(prior.names, found.theta.tolist())),
                      "posterior_sd": dict(zip(prior.names, sd.tolist())),
                      "prior_sd": dict(zip(prior.names, prior.sd.tolist())),
-                     "material": files[name], "unseen": found.unseen,
+                     "material": spec, "unseen": found.unseen,
                      "iterations": found.iterations, "converged": found.converged,
                      "history": found.history, "registration_correction": found.registration,
                      "residual_rms_mm": {"before": found.rms_before, "after": found.rms_after},
                      "fit": _quality(found, args.noise_mm),
                      "error_before_mm": before, "error_after_mm": after})
+    if args.each:   # every group's fits, in the cases' order
+        lead = group.rank == 0
+        fits = sorted((f for part in comm.allgather(fits if lead else []) for f in part),
+                      key=lambda f: names.index(f["cases"][0]))
+    files = {Path(f["file"]).name: f["material"] for f in fits}
     out = Path(args.out)
     for name, spec in files.items():
         write_json(out / name, spec, comm)
-    report = {"cases": args.cases, "n_ranks": comm.size, "noise_mm": args.noise_mm,
+    report = {"cases": args.cases, "n_ranks": comm.size, "rank_groups": n_groups,
+              "noise_mm": args.noise_mm,
               "prior": prior.report(), "fits": fits,
               "timings_s": {"total": time.perf_counter() - t0}}
     write_json(args.report, report, comm)

@@ -110,8 +110,7 @@ def _check_recovery(d, cases, report, seen):
     scale = [u for u in fitted["unseen"] if len(u["direction"]) == 3 and all(
         k.endswith("log_E") and abs(abs(w) - 3 ** -0.5) < 0.05 for k, w in u["direction"].items())]
     assert scale, fitted["unseen"]
-    for case in cases:
-        name = case["case"].parent.name
+    for case, name in zip(cases, fitted["cases"]):   # each named by its folder, made unique
         before, after = fitted["error_before_mm"][name], fitted["error_after_mm"][name]
         assert after["face"]["rms"] < min(before["face"]["rms"], 1.5 * NOISE_MM), (before, after)
         for region, e in after.items():
@@ -205,16 +204,29 @@ def test_taylor_on_craniums_scene(cranium):
 
 @pytest.mark.mpi
 def test_calibration_is_the_same_on_two_ranks(synthetic, tmp_path):
-    """calibrate.py under mpirun -n 2: the same tissue as on one rank."""
+    """calibrate.py under mpirun -n 2, both ranks on one scene, and split so that each rank
+    takes a case of two: the same tissue as on one rank."""
     from test_scripts import _mpirun
 
     d, (case,), one = synthetic
-    out = tmp_path / "cal2"
-    _ok(_mpirun(2) + CALIBRATE + ["--cases", str(case["case"]), "--noise-mm", str(NOISE_MM),
-                                  "--out", str(out), "--report", str(out / "report.json")])
-    two = json.loads((out / "report.json").read_text())
-    for a, b in zip(one["fits"][0]["theta"].values(), two["fits"][0]["theta"].values()):
-        assert abs(a - b) < 1e-6, (one["fits"][0]["theta"], two["fits"][0]["theta"])
+
+    def run(name, ranks, cases, *extra):
+        out = tmp_path / name
+        _ok((_mpirun(ranks) if ranks > 1 else []) + CALIBRATE + [
+            "--cases", *map(str, cases), "--noise-mm", str(NOISE_MM), *extra,
+            "--out", str(out), "--report", str(out / "report.json")])
+        return json.loads((out / "report.json").read_text())["fits"][0]
+
+    def same(a, b):
+        for x, y in zip(a["theta"].values(), b["theta"].values()):
+            assert abs(x - y) < 1e-6, (a["theta"], b["theta"])
+
+    same(run("shared", 2, [case["case"]]), one["fits"][0])
+    twice = [case["case"]] * 2   # two cases: v and v-2 (their folder)
+    split, serial = run("split", 2, twice, "--split"), run("serial", 1, twice)
+    assert split["cases"] == serial["cases"] == ["v", "v-2"]
+    same(split, serial)
+    assert split["registration_correction"] == pytest.approx(serial["registration_correction"])
 
 
 @needs_cranium
