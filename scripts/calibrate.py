@@ -182,20 +182,26 @@ def main(argv=None):
     from fem.material import material_file, with_theta
     from inverse.calibration import Cases, fit
     from inverse.uncertainty import Prior, scene_prior
+    from meshes.errors import InputError, MeshError
 
     t0 = time.perf_counter()
     names = _names(args.cases)
     n_groups = min(comm.size, len(args.cases)) if args.split else 1
     color = comm.rank % n_groups
     group = comm.Split(color, comm.rank) if n_groups > 1 else comm
-    mine = [(i, _case(path, args.prior, group, names[i])) for i, path in enumerate(args.cases)
-            if i % n_groups == color]
+    mine, error = [], None
+    try:   # an error in one group is raised on every rank (no rank waits for it)
+        mine = [(i, _case(path, args.prior, group, names[i]))
+                for i, path in enumerate(args.cases) if i % n_groups == color]
+    except (InputError, MeshError) as e:
+        error = (type(e), str(e))
+    for err in comm.allgather(error):
+        if err is not None:
+            raise err[0](err[1])
     prior = comm.bcast(Prior.from_file(args.prior) if args.prior else
                        scene_prior(mine[0][1].scene) if comm.rank == 0 else None, root=0)
     if len({k for ks in comm.allgather([tuple(scene_prior(c.scene).names) for _, c in mine])
             for k in ks}) > 1:
-        from meshes.errors import InputError
-
         raise InputError("the cases' materials differ in kind (tissues, homogeneous): give "
                          "--prior, or fit them --each")
     bounds = _bounds(args.bounds, prior)

@@ -271,3 +271,19 @@ def test_calibration_from_a_post_operative_ct(cranium):
         c = key.split("/")[0]
         error = np.log(r["value"] / (true_E[c] / true_E["skin"]))
         assert abs(error) < 3 * r["sd_log"], (key, error, r)
+
+
+@pytest.mark.mpi
+def test_a_bad_case_in_one_rank_group_stops_every_rank(synthetic, tmp_path):
+    """--split on two ranks, the second case not a validated one: one line, exit 2 from
+    every rank, no rank left waiting."""
+    from test_scripts import _mpirun
+
+    d, (case,), _ = synthetic
+    out = tmp_path / "cal"
+    r = _run(_mpirun(2) + CALIBRATE + ["--cases", str(case["case"]),
+                                       str(d / "v1" / "sim" / "r.json"), "--split", "--out",
+                                       str(out), "--report", str(out / "report.json")],
+             timeout=300)
+    assert r.returncode == 2 and "not a validated case" in r.stderr, r.stderr[-2000:]
+    assert not out.exists()
