@@ -4,7 +4,8 @@ prints one JSON line: per file, the reader, the point and cell counts, and each 
 component count and range (its magnitude's, for vectors). With ``--warp PNG`` it also renders
 the first file warped by its ``displacement`` (*Warp By Vector*) to PNG.
 
-    xvfb-run -a pvbatch tests/paraview_probe.py out/displacement.xdmf --warp warp.png
+    xvfb-run -a -s -noreset pvbatch tests/paraview_probe.py $PWD/out/displacement.xdmf \
+        --warp warp.png
 """
 
 import argparse
