@@ -90,19 +90,19 @@ class Case:
         Collective."""
         from inverse.uncertainty import material_rows
         from inverse.validation import signed_distance
-        from meshes.surface import boundary_edges, normals_at, vertex_normals
+        from meshes.surface import boundary_edges, vertex_normals
 
         after, points = self.skin.at(self.scene), self.outcome
-        d, seen, q = signed_distance(after, vertex_normals(after, self.skin.tris), points,
-                                     self.tris)
+        d, seen, q, n = signed_distance(after, vertex_normals(after, self.skin.tris), points,
+                                        self.tris)
         if self.covered is None:
             self.covered = seen & (np.abs(d) < MAX_GAP_MM)
             self.covered[np.unique(boundary_edges(self.skin.tris))] = False
             self.bias = np.zeros(len(d))
             if self.rest is not None:   # the extraction's own offset from the mesh's skin
                 x = self.skin.rest
-                self.bias, in_rest, _ = signed_distance(x, vertex_normals(x, self.skin.tris),
-                                                        *self.rest)
+                self.bias, in_rest, *_ = signed_distance(x, vertex_normals(x, self.skin.tris),
+                                                         *self.rest)
                 self.covered &= in_rest & (np.abs(self.bias) < MAX_GAP_MM)
             if self.covered.mean() < MIN_COVERED:
                 raise InputError(f"case {self.name}: the outcome lies within {MAX_GAP_MM:g} mm "
@@ -111,13 +111,9 @@ class Case:
         d = d - self.bias
         if not jacobian:
             return d[self.covered], None
-        from meshes.surface import closest_points
-
-        q = q[self.covered]
-        _, _, tri = closest_points(after[self.covered], points, self.tris)
-        n = normals_at(points, self.tris, tri, q)
         (rows,) = material_rows(self.scene, [self.skin.op], rtol=None)   # (N, 3, nθ)
         # d = (x - q)·n, the outcome turned by ω and moved by t: dq = ω × q + t
+        q, n = q[self.covered], n[self.covered]
         return d[self.covered], np.hstack([np.einsum("ki,kit->kt", n, rows[self.covered]),
                                            -np.cross(q, n), -n])
 

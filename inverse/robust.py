@@ -47,8 +47,7 @@ def _band(scene, obj, prior: Prior) -> np.ndarray:
 
 
 def _parts(scene, obj, prior) -> tuple:
-    """(E[T] parts {"T", "band", "total"}, B, T's weighted residual) at the current
-    equilibrium."""
+    """(E[T]'s parts {"T", "band", "total"} mm², B) at the current equilibrium."""
     B = _band(scene, obj, prior)
     T = obj.value()
     return {"T": T, "band": 0.5 * float(B @ B), "total": T + 0.5 * float(B @ B)}, B

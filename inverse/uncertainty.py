@@ -138,8 +138,12 @@ def material_rows(scene, ops: list, rtol: float | None = BAND_RTOL) -> list:
     back-substitutions, or block CG on the kept factor to ``rtol`` (`BAND_RTOL`; None: the
     tangent's own, for calibration's gradients). Collective."""
     with _columns(scene, rtol) as cols:
-        return [np.stack([op.apply(c.array, offset=False) for c in cols], axis=-1)
-                for op in ops]
+        return [_rows(op, cols) for op in ops]
+
+
+def _rows(op, cols) -> np.ndarray:
+    """(N, 3, nθ): the columns at the points of ``op``. Collective."""
+    return np.stack([op.apply(c.array, offset=False) for c in cols], axis=-1)
 
 
 def theta_rows(scene, names=None, vertices: bool = False, rtol: float | None = BAND_RTOL):
@@ -149,7 +153,7 @@ def theta_rows(scene, names=None, vertices: bool = False, rtol: float | None = B
     names = list(scene.domain.landmarks) if names is None else list(names)
     op = scene.domain.point_operator(names)
     with _columns(scene, rtol) as cols:
-        rows = np.stack([op.apply(c.array, offset=False) for c in cols], axis=-1)
+        rows = _rows(op, cols)
         every = None
         if vertices:
             parts = [scene.domain.vertex_array(c.array) for c in cols]
@@ -202,12 +206,20 @@ def bands(rows: np.ndarray, prior: Prior, frame, names) -> dict:
     return out
 
 
-def band_report(scene, prior: Prior, names=None) -> dict:
-    """The report's ``bands``: the prior (`Prior.report`) and each landmark's band
-    (`bands`) at the current equilibrium. Collective."""
-    names = list(scene.domain.landmarks) if names is None else list(names)
-    rows, _ = theta_rows(scene, names)
-    return {"prior": prior.report(), "landmarks": bands(rows, prior, scene.head_frame, names)}
+def band_report(scene, prior: Prior | None, names, vertices: bool):
+    """(the report's ``bands``: the prior (`Prior.report`) and each landmark of ``names``'s
+    band (`bands`), or None where ``prior`` is None; the point fields ``{"band_r95_mm":
+    (n_vertices,)}`` on rank 0 where ``vertices``, else {}) at the current equilibrium.
+    Collective."""
+    if prior is None:
+        return None, {}
+    rows, every = theta_rows(scene, names, vertices)
+    report = {"prior": prior.report(), "landmarks": bands(rows, prior, scene.head_frame,
+                                                           names)}
+    if not vertices:
+        return report, {}
+    return report, {"band_r95_mm": radius95(covariances(every, prior))
+                    if scene.domain.comm.rank == 0 else None}
 
 
 def sample_theta(prior: Prior, n: int, seed: int = 0) -> np.ndarray:

@@ -163,9 +163,9 @@ def register_scan(scan_points: np.ndarray, scan_tris: np.ndarray, skin: np.ndarr
 
 def signed_distance(x: np.ndarray, normals: np.ndarray, points: np.ndarray,
                     tris: np.ndarray) -> tuple:
-    """(signed distance (K,) mm, covered (K,) bool, closest points (K, 3)) from points x
-    (K, 3) with unit normals (K, 3) to the surface: > 0 where x lies on the side its normals
-    point to. Covered where
+    """(signed distance (K,) mm, covered (K,) bool, closest points (K, 3), the surface's
+    unit normals there (K, 3)) from points x (K, 3) with unit normals (K, 3) to the surface:
+    > 0 where x lies on the side its normals point to. Covered where
     the closest point lies inside the surface, not on its open rim, and the surface there
     faces the way x does, within `COVER_COS`."""
     from meshes.surface import closest_points, normals_at, on_rim
@@ -174,7 +174,7 @@ def signed_distance(x: np.ndarray, normals: np.ndarray, points: np.ndarray,
     n = normals_at(points, tris, tri, q)   # one normal on an edge, whichever triangle
     side = np.einsum("ij,ij->i", x - q, n)
     facing = np.einsum("ij,ij->i", normals, n) > COVER_COS
-    return np.where(side < 0, -d, d), ~on_rim(q, points, tris) & facing, q
+    return np.where(side < 0, -d, d), ~on_rim(q, points, tris) & facing, q, n
 
 
 def region_masks(x: np.ndarray, lm: dict) -> dict:
@@ -231,8 +231,8 @@ def compare(after: np.ndarray, rest: np.ndarray, skin_tris: np.ndarray, frame,
     from meshes.landmarks import skin_landmarks
     from meshes.surface import boundary_edges, vertex_normals
 
-    d, seen, q = signed_distance(after, vertex_normals(after, skin_tris), scan_points,
-                                 scan_tris)
+    d, seen, q, _ = signed_distance(after, vertex_normals(after, skin_tris), scan_points,
+                                    scan_tris)
     covered = seen.copy()
     covered[np.unique(boundary_edges(skin_tris))] = False   # the skin's own rim
     if not covered.any():

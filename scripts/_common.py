@@ -166,29 +166,11 @@ def add_scene_args(ap, plan: bool = False):
 def add_band_args(ap) -> None:
     """``--prior`` and ``--no-bands``: the prediction bands (`inverse.uncertainty`)."""
     ap.add_argument("--prior", help="material file (.json) whose E (kPa) and nu per class are "
-                    "the prior's medians and optional sd_log_E, sd_nu its spreads "
+                    "the prior's medians and optional sd_log_E, sd_log_1m2nu its spreads "
                     "(docs/uncertainty.md; default: the scene's material, documented spreads)")
     ap.add_argument("--no-bands", action="store_true",
                     help="skip the prediction bands (one back-substitution per material "
                     "parameter; the report's 'bands' and the XDMF's band_r95_mm)")
-
-
-def bands_of(scene, prior, names, vertices: bool):
-    """(the report's ``bands``, or None where ``prior`` is None; the point fields
-    ``{"band_r95_mm": (n_vertices,)}`` on rank 0 where ``vertices``, else {}): the bands at
-    the current equilibrium (`inverse.uncertainty`). Collective."""
-    if prior is None:
-        return None, {}
-    from inverse.uncertainty import bands, covariances, radius95, theta_rows
-
-    rows, every = theta_rows(scene, names, vertices)
-    report = {"prior": prior.report(), "landmarks": bands(rows, prior, scene.head_frame,
-                                                           names)}
-    fields = {}
-    if vertices:
-        fields["band_r95_mm"] = (radius95(covariances(every, prior))
-                                 if scene.domain.comm.rank == 0 else None)
-    return report, fields
 
 
 def scene_from_args(args, comm, plan: bool = False, groups: bool = True):

@@ -117,7 +117,6 @@ def _write(scene, pred, out: Path, comm):
     """skin_sensitivity.npz and sensitivity.xdmf (u and dx/dp_i on the volume)."""
     import numpy as np
 
-    from fem.compat import petsc_vec
     from fem.io import write_npz
 
     dom = scene.domain
@@ -126,12 +125,9 @@ def _write(scene, pred, out: Path, comm):
         "points_rest": pred.x_rest,
         "points": pred.x0, "triangles": dom.boundary_triangles(pred.vertices), "S": pred.S,
         "param_names": np.array(scene.param_names), "p0": pred.p0}, comm)
-    fields = {"displacement": scene.eq.u.x.array}
-    for name, s in zip(scene.param_names, scene.eq.sensitivity()):
-        f = scene.eq.u.copy()
-        petsc_vec(f).array[:] = s.array
-        f.x.scatter_forward()
-        fields[f"dx_d[{name}]"] = f.x.array
+    fields = {"displacement": scene.eq.u.x.array,   # the owned values are what is written
+              **{f"dx_d[{name}]": s.array
+                 for name, s in zip(scene.param_names, scene.eq.sensitivity())}}
     scene.write_volume(out / "sensitivity.xdmf", fields)
 
 

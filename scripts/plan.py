@@ -22,7 +22,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
     add_band_args,
-    bands_of,
     names_list,
     parse,
     read_json,
@@ -89,7 +88,7 @@ def main(argv=None):
     import numpy as np
 
     from fem.io import write_json
-    from inverse.uncertainty import scene_prior
+    from inverse.uncertainty import band_report, scene_prior
 
     t0 = time.perf_counter()
     scene = scene_from_args(args, comm, plan=True)
@@ -143,7 +142,7 @@ def main(argv=None):
     if args.robust:
         report["robust"] = _robust(scene, obj, prior, result.params)
     t = time.perf_counter()   # the bands at the plan found (the robust one with --robust)
-    report["bands"], fields = bands_of(scene, prior, list(scene.domain.landmarks),
+    report["bands"], fields = band_report(scene, prior, list(scene.domain.landmarks),
                                        vertices=bool(args.out or args.picture))
     report["timings_s"]["bands"] = time.perf_counter() - t
     if args.out:

@@ -22,7 +22,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scripts._common import (  # noqa: E402
     add_band_args,
     add_transforms_arg,
-    bands_of,
     check_movements,
     movements,
     parse,
@@ -47,7 +46,7 @@ def main(argv=None):
     import time
 
     from fem.io import write_json
-    from inverse.uncertainty import scene_prior
+    from inverse.uncertainty import band_report, scene_prior
 
     t0 = time.perf_counter()
     check_movements(args)
@@ -68,7 +67,7 @@ def main(argv=None):
     timings = dict(scene.timings, assemble=stats.assemble, linear_solve=stats.linear_solve,
                    solve=stats.total)
     t = time.perf_counter()
-    bands, fields = bands_of(scene, prior, list(moved), vertices=bool(args.out))
+    bands, fields = band_report(scene, prior, list(moved), vertices=bool(args.out))
     timings["bands"] = time.perf_counter() - t
     if args.out:
         scene.write(args.out, fields)
