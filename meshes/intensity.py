@@ -21,7 +21,17 @@ clipping of the air. The map to HU goes through the classes' reference HU (`AIR_
 * piecewise linear through all three where it does not (a non-linear scale);
 * through soft tissue and bone where the air is clipped (`CLIPPED_SHARE`);
 
-and extended beyond the outer two by their slope. A scan whose classes already lie at those
+and extended beyond the outer two by their slope.
+
+Metal is decided in the scan's own values (`Intensity.metal_scan`), since nothing anchors the
+map above bone: a 12-bit scale puts Cranium's enamel (2986 HU) 85 HU below metal's 3071, and
+over 2000 HU of extrapolation a scale's curvature moves it more (the upper segment's slope
+read it 3208 HU under gamma 1.25). A voxel is metal where the scan saturates (at least
+`SATURATED` voxels at its maximum, above bone), or where it reaches `meshes.metal.METAL_HU`
+under the lower of two extensions above bone: the upper segment's slope, and the slope at
+bone of the parabola through the three classes. Other voxels read below `METAL_HU`.
+
+A scan whose classes already lie at those
 HU (`HU_TOLERANCE`) is taken as HU and left as it is (source ``"hu"``); any other is
 mapped (``"estimated"``); a scene file's ``"calibration": "none"`` takes its values as they
 are, thresholds included (``"given"``). A volume with no bone class above its soft tissue
@@ -35,6 +45,7 @@ import dataclasses
 import numpy as np
 
 from meshes.errors import MeshError
+from meshes.metal import METAL_HU
 from meshes.volume import Volume, read_volume
 
 #: Reference HU of the classes. Soft tissue: the histogram's mode between the Otsu splits,
@@ -56,6 +67,10 @@ MIN_BONE_CONTRAST = 0.3
 #: Values below this are a CT's padding beyond its field of view (-2000, -3024), not air:
 #: left out of the histogram (a post-operative CT's, `inverse.postop.FOV_PAD_HU`).
 PAD_HU = -1500.0
+#: A scan saturates (its top is metal) when at least this many voxels hold its maximum, and it
+#: lies above bone: a bracket is some 30 voxels at 1 mm; Cranium's maximum holds 1 voxel,
+#: in HU and in every test mapping.
+SATURATED = 8
 #: Histogram bins for the modes, and the voxels sampled (evenly, at most SAMPLES: a CBCT's
 #: 152 M voxels as 2 M float64, 16 MB).
 BINS, SAMPLES = 512, 2_000_000
@@ -71,26 +86,36 @@ class Intensity:
         classes: class centres in the scan's own values: ``air``, ``soft``, ``bone``.
         anchors: (scan values (K,), HU (K,)) of the piecewise-linear map.
         noise_hu: the soft-tissue class's spread (robust SD), HU; None where not estimated.
+        metal_scan: the scan value from which a voxel is metal (module docstring); None
+            where the map is the identity.
     """
 
     source: str
     classes: dict
     anchors: tuple
     noise_hu: float | None
+    metal_scan: float | None = None
 
     def to_hu(self, values) -> np.ndarray:
-        """The HU of scan values (any shape), piecewise linear and extended linearly."""
+        """The HU of scan values (any shape): piecewise linear and extended linearly, metal
+        (`metal_scan`) at least `METAL_HU` and every other value below it."""
         xp, fp = (np.asarray(a, float) for a in self.anchors)
         v = np.asarray(values, np.float32)
         lo = (fp[1] - fp[0]) / (xp[1] - xp[0])
         hi = (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])
         out = np.interp(v, xp, fp).astype(np.float32)
         out = np.where(v < xp[0], fp[0] + (v - xp[0]) * lo, out)
-        return np.where(v > xp[-1], fp[-1] + (v - xp[-1]) * hi, out).astype(np.float32)
+        out = np.where(v > xp[-1], fp[-1] + (v - xp[-1]) * hi, out)
+        if self.metal_scan is not None:
+            out = np.where(v >= self.metal_scan, np.maximum(out, METAL_HU),
+                           np.minimum(out, METAL_HU - 1.0))
+        return out.astype(np.float32)
 
     def to_scan(self, hu: float) -> float:
         """The scan value of an HU value (the map's inverse)."""
         xp, fp = (np.asarray(a, float) for a in self.anchors)
+        if hu == METAL_HU and self.metal_scan is not None:
+            return float(self.metal_scan)
         if hu < fp[0]:
             return float(xp[0] + (hu - fp[0]) * (xp[1] - xp[0]) / (fp[1] - fp[0]))
         if hu > fp[-1]:
@@ -104,10 +129,31 @@ class Intensity:
                                                   for k, v in self.classes.items()},
                "noise_hu": None if self.noise_hu is None else round(self.noise_hu, 1)}
         default = {"hu": "HU default", "estimated": "estimated", "given": "given"}[self.source]
-        out["thresholds"] = {k: {"hu": float(v), "scan": round(self.to_scan(v), 2),
+        out["thresholds"] = {k: {"hu": float(v), "scan": _finite(self.to_scan(v)),
                                  "source": "given" if k in given else default}
                              for k, v in (thresholds or {}).items()}
         return out
+
+
+def _finite(x: float):
+    """x rounded to 0.01, or None where no scan value reaches it (JSON has no infinity)."""
+    return round(x, 2) if np.isfinite(x) else None
+
+
+def _metal_scan(flat: np.ndarray, xp: list, fp: list) -> float:
+    """The scan value from which a voxel of ``flat`` (N,) is metal, for the map through the
+    anchors (xp, fp) (module docstring); +inf where none is."""
+    top = float(flat.max())
+    s = np.diff(fp) / np.diff(xp)
+    slope = s[-1]
+    if len(s) > 1:   # the parabola's slope at the last anchor
+        m = (np.asarray(xp[:-1]) + np.asarray(xp[1:])) / 2
+        tangent = s[-1] + (s[-1] - s[-2]) * (xp[-1] - m[-1]) / (m[-1] - m[-2])
+        slope = min(slope, tangent) if tangent > 0 else slope
+    reach = xp[-1] + (METAL_HU - fp[-1]) / slope
+    if top > xp[-1] and np.count_nonzero(flat == top) >= SATURATED:
+        reach = min(reach, top)
+    return float(reach) if reach <= top else float("inf")
 
 
 def _mode(values: np.ndarray) -> tuple:
@@ -170,7 +216,7 @@ def estimate(volume: Volume) -> Intensity:
     if is_hu:
         return Intensity("hu", classes, ([0.0, 1.0], [0.0, 1.0]), noise)
     scale = (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])   # HU per scan unit (the upper segment)
-    return Intensity("estimated", classes, (xp, fp), noise * scale)
+    return Intensity("estimated", classes, (xp, fp), noise * scale, _metal_scan(flat, xp, fp))
 
 
 def as_given() -> Intensity:

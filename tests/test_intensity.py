@@ -94,6 +94,25 @@ def test_gray_values_come_back_to_hu(scan, remap):
         assert np.sum((truth != mapped) & ~layer) <= 5e-4 * truth.sum(), (level, remap)
 
 
+@pytest.mark.parametrize("remap", list(REMAPS))
+def test_metal_is_told_from_enamel_under_every_mapping(remap):
+    """Cranium's enamel (up to 2986 HU, 14 below metal) is never metal in its gray values,
+    under gammas whose curvature an extension above bone carries over 3000 HU; brackets of
+    8000 HU, which saturate the 12-bit mappings (3071 HU) 85 HU above enamel, are metal on
+    every voxel that is metal in HU, and little else (streaked enamel)."""
+    from meshes.intensity import estimate
+    from meshes.metal import METAL_HU
+
+    v = _cranium()
+    b, mask, _ = _with_brackets(v, teeth_hu=2000.0)
+    assert mask.any()
+    for vol, metal in ((v, np.zeros(v.array.shape, bool)), (b, mask)):
+        w = _remapped(vol, remap)
+        got = estimate(w).to_hu(w.array) >= METAL_HU
+        in_hu = np.sum(vol.array >= METAL_HU)
+        assert np.all(got[metal]) and got.sum() <= 1.2 * in_hu, (remap, got.sum(), in_hu)
+
+
 def test_a_volume_without_bone_is_refused_in_one_line():
     """A head of soft tissue alone (its bone read as tissue) has no bone class: one line."""
     from meshes.errors import MeshError

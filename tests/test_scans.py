@@ -79,7 +79,7 @@ def cranium_paper(tmp_path_factory, cache):  # noqa: F811 (the fixture, imported
 
 
 @needs_cranium
-@pytest.mark.parametrize("remap", ["cbct", "12-bit", "gamma 0.8"])
+@pytest.mark.parametrize("remap", ["cbct", "12-bit", "gamma 0.8", "gamma 1.25"])
 def test_cranium_in_gray_values_gives_the_hu_scene(tmp_path, cranium_paper, remap):
     """Cranium's HU mapped as a CBCT's gray values (stored as 16-bit unsigned) and built at
     paper: the report says the HU were estimated, with the classes; every landmark lies
