@@ -37,6 +37,11 @@ OCCLUSAL_MM = 15.0
 #: Crown heights (mm) of the central incisors (Wheeler's Dental Anatomy: maxillary 10.5,
 #: mandibular 9.0), per jaw: the synthetic heads' teeth.
 CROWN_MM = {"maxilla": 10.5, "mandible": 9.0}
+#: A segment's teeth are lopsided when their area is less than this share of its mirror
+#: segment's (maxilla_L against maxilla_R): Cranium's halves hold 1502 and 1105 mm² (0.74);
+#: an RTK CBCT whose crowns lie in the last 6 mm of its circular orbit's axial field, where
+#: FDK lacks data, read its enamel below 2000 HU on one half: 476 and 0 mm².
+LOPSIDED_SHARE = 0.33
 #: Depth (mm) of the labial vestibule from the gingival margin to the fold, adults 15-50
 #: years: maxilla 9-12, mandible 7-10 (a clinical survey of vestibular depth by age; Ward
 #: 1976 measured 2.5-11.5 mm in the mandible). The tissue slides this far beyond the teeth.
@@ -105,4 +110,21 @@ def teeth_report(anatomy) -> dict:
         z = x[:, :, 2].mean(axis=1)
         out[name] = {"facets": int(on.sum()), "area_mm2": float(area.sum()),
                      "height_mm": [float(z.min()), float(z.max())]}
+    return out
+
+
+
+def lopsided_teeth(teeth: dict, segments) -> dict:
+    """{segment: why} of the ``segments`` (names) whose teeth in `teeth_report`'s ``teeth``
+    hold less than `LOPSIDED_SHARE` of their mirror segment's area (``name_L`` against
+    ``name_R``): the lips slide on the other side only."""
+    area = {k: v["area_mm2"] for k, v in teeth.items()}
+    out = {}
+    for name in segments:
+        mirror = name[:-1] + {"L": "R", "R": "L"}[name[-1]] if name[-2:] in ("_L", "_R") else None
+        mine, theirs = area.get(name, 0.0), area.get(mirror, 0.0)
+        if mirror in segments and mine < LOPSIDED_SHARE * theirs:
+            out[name] = (f"teeth on {mine:.0f} mm² against {theirs:.0f} on {mirror}: the lips "
+                         f"slide on {mirror}'s side only; the enamel here reads below "
+                         f"{TEETH_HU:g} HU (a CBCT's blur, or the edge of its field of view)")
     return out

@@ -108,7 +108,7 @@ def main(argv=None):
     from meshes.anatomy import SKIN, segment_tags
     from meshes.errors import MeshError
     from meshes.external import write_tet_mesh
-    from meshes.teeth import teeth_report
+    from meshes.teeth import lopsided_teeth, teeth_report
 
     t0 = time.perf_counter()
     result = None
@@ -128,6 +128,7 @@ def main(argv=None):
     if comm.rank == 0:
         anatomy, info = result
         timings = dict(info["timings_s"])
+        teeth = teeth_report(anatomy)
         t = time.perf_counter()
     write_on_root(mesh, (lambda p: write_tet_mesh(anatomy, p)) if comm.rank == 0 else None,
                   comm)
@@ -138,7 +139,8 @@ def main(argv=None):
             "mesh": str(mesh), "n_vertices": anatomy.n_vertices, "n_cells": anatomy.n_cells,
             "segments": {n: int(np.isin(anatomy.facet_tags, segment_tags(tag)).sum())
                          for n, tag in anatomy.segments.items()},
-            "teeth": teeth_report(anatomy), "tissues": info["tissues"],
+            "teeth": teeth, "teeth_lopsided": lopsided_teeth(teeth, anatomy.segments),
+            "tissues": info["tissues"],
             "material": anatomy.material,
             "skin_facets": int((anatomy.facet_tags == SKIN).sum()),
             "landmarks": {n: p.tolist() for n, p in anatomy.landmark_positions().items()},
@@ -152,6 +154,8 @@ def main(argv=None):
               + (" (cached)" if info["cached"] else ""))
         for name, why in info.get("landmarks_left_out", {}).items():
             print(f"landmark {name} left out: {why}")
+        for name, why in report["teeth_lopsided"].items():
+            print(f"warning: {name}: {why}")
         if info.get("intensity"):
             print(intensity_line(info["intensity"], info["metal"]))
         tilt = anatomy.head_frame.tilt_deg()

@@ -142,6 +142,25 @@ def test_cranium_with_brackets_gives_the_clean_scene(tmp_path, cranium_paper):
     _check_brackets(rep, cranium_paper, _voxel(v), {"N", "Prn", "Sn"})
 
 
+@needs_cranium
+def test_teeth_found_on_one_half_say_so(tmp_path, cranium_paper):
+    """Cranium whose right half reads at most 1700 HU, as an RTK CBCT's FDK read its crowns at
+    the edge of its axial field: the report names maxilla_R, and only it, in ``teeth_lopsided``;
+    the clean scene names none."""
+    assert cranium_paper["teeth_lopsided"] == {}
+    v = _cranium()
+    spec = json.loads((EXAMPLES / "cranium.json").read_text())
+    x = v.origin[0] + v.spacing[0] * np.arange(v.array.shape[0])
+    right = (x < spec["midsagittal"]["point"][0])[:, None, None]   # LPS: x to the left
+    a = np.where(right, np.minimum(v.array, 1700), v.array)
+    folder = tmp_path / "lopsided"
+    rep = _scene(folder, _write(dataclasses.replace(v, array=a), tmp_path / "r.mha"), spec,
+                 "paper")
+    assert set(rep["teeth_lopsided"]) == {"maxilla_R"}, rep["teeth"]
+    assert rep["teeth"]["maxilla_L"]["area_mm2"] > 0.9 * \
+        cranium_paper["teeth"]["maxilla_L"]["area_mm2"]
+
+
 def test_synthetic_ct_with_brackets_gives_the_clean_scene(tmp_path):
     """The same on the synthetic CT (1.25 mm voxels, crowns of enamel) at medium."""
     from meshes.synthetic import synthetic_scene_file
