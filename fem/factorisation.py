@@ -60,6 +60,7 @@ class KeptFactor:
 
     def __init__(self, ksp, comm, settings: dict, prefix: str, shift_max: float, policy):
         self.ksp, self.comm, self.shift_max, self.policy = ksp, comm, shift_max, policy
+        self.prefix = prefix
         self.state, self.refactor = FactorState.NONE, False
         self.shift, self.step_shift, self.diag_scale = 0.0, 0.0, None
         pc = ksp.getPC()
@@ -150,6 +151,7 @@ class KeptFactor:
                 attempt < self.policy.mumps_workspace_retries
             if workspace:
                 self.icntl[14] = 2 * max(F.getMumpsIcntl(14), 10)
+                self._outgrow_option(14)
             pc.reset()
             self.ksp.setOperators(A)
             self.new_mumps_factor(pc)
@@ -160,6 +162,15 @@ class KeptFactor:
             pc.setUp()
         log.warning("MUMPS factorisation failed (INFOG(1) = %d)", err)
         return -1
+
+    def _outgrow_option(self, k: int):
+        """ICNTL(k) as raised here, also where the command line set it: PETSc reads the
+        options again at every new factor, and a user's too small ICNTL(14) undid each
+        retry (fine, ``-orthodiff_fwd_mat_mumps_icntl_14 5``: 28 failed factorisations,
+        22 GB, until stopped)."""
+        opts, key = PETSc.Options(), f"{self.prefix}mat_mumps_icntl_{k}"
+        if opts.hasName(key):
+            opts[key] = self.icntl[k]
 
     def serves(self, its: int, lag_its: int, unshifted: bool = False) -> bool:
         """The factorisation held may serve the next Jacobian instead of a new one: one is

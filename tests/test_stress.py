@@ -283,6 +283,31 @@ def test_failed_mumps_factorisation_is_redone(mandible_only, tiny_anatomy, mandi
     scene.eq.destroy()
 
 
+def test_a_workspace_retry_outgrows_the_command_lines_icntl_14(mandible_only, tiny_anatomy,
+                                                               monkeypatch):
+    """A user's ``-orthodiff_fwd_mat_mumps_icntl_14 5`` does not undo the workspace retry:
+    PETSc reads the options again at every new factor, so the retry raises the option too
+    (before, fine at ICNTL(14) = 5 failed 28 times and grew to 22 GB until stopped). Forced
+    as above: the first factor capped at 1 MB, counted as a workspace error."""
+    import fem.factorisation
+    from petsc4py import PETSc
+
+    monkeypatch.setattr(fem.factorisation, "MUMPS_WORKSPACE_ERRORS", {-19})
+    opts, key = PETSc.Options(), "orthodiff_fwd_mat_mumps_icntl_14"
+    opts[key] = 5
+    try:
+        scene = mandible_only(tiny_anatomy)
+        pc = scene.eq.ksp.getPC()
+        pc.getFactorMatrix().setMumpsIcntl(23, 1)
+        scene.solve(scene.param_vector({"mandible.advance_mm": 3.0}))
+        assert pc.getFactorMatrix().getMumpsInfog(1) == 0
+        assert pc.getFactorMatrix().getMumpsIcntl(14) == scene.eq.kept.icntl[14] == 20
+        assert opts.getInt(key) == 20
+        scene.eq.destroy()
+    finally:
+        opts.delValue(key)
+
+
 def test_newton_takes_over_from_a_sound_quasi_newton_iterate(mandible_only, tiny_anatomy,
                                                             monkeypatch):
     """A 20 mm advance from rest with Newton taking over at the first quasi-Newton failure
