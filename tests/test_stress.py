@@ -289,8 +289,9 @@ def test_a_workspace_retry_outgrows_the_command_lines_icntl_14(mandible_only, ti
     PETSc reads the options again at every new factor, so the retry raises the option too
     (before, fine at ICNTL(14) = 5 failed 28 times and grew to 22 GB until stopped). Forced
     as above: the first factor capped at 1 MB, counted as a workspace error."""
-    import fem.factorisation
     from petsc4py import PETSc
+
+    import fem.factorisation
 
     monkeypatch.setattr(fem.factorisation, "MUMPS_WORKSPACE_ERRORS", {-19})
     opts, key = PETSc.Options(), "orthodiff_fwd_mat_mumps_icntl_14"
