@@ -2,7 +2,7 @@
 """Benchmarks (not timed tests). Results are printed and written into BENCHMARKS.md.
 
     python3 scripts/bench.py forward [--resolutions tiny,coarse,medium,paper,fine]
-                                     [--solvers direct,cholmod] [--ranks 1,2]
+                                     [--solvers direct,cholmod,amg] [--ranks 1,2]
                                      [--all-up-to paper]
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
@@ -140,12 +140,12 @@ def main():
     sub = ap.add_subparsers(dest="what", required=True, parser_class=_Parser)
     f = sub.add_parser("forward", help="forward equilibrium across resolutions and solvers")
     f.add_argument("--resolutions", default="tiny,coarse,medium,paper,fine")
-    f.add_argument("--solvers", default="direct,cholmod",
+    f.add_argument("--solvers", default="direct,cholmod,amg",
                    help="presets (gamg: ~100x slower at paper, see docs/decisions.md)")
     f.add_argument("--ranks", default="1,2")
     f.add_argument("--methods", default="qn,newton")
     f.add_argument("--all-up-to", default="paper",
-                   help="resolutions beyond it run the default solver and method only")
+                   help="resolutions beyond it run quasi-Newton on direct and amg only")
     f.add_argument("--iterative-up-to", default="paper",
                    help="largest resolution for the GAMG preset")
     pl = sub.add_parser("plan", help="derivatives, exploration and whole plans")

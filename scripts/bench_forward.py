@@ -25,6 +25,9 @@ from scripts._bench import (  # noqa: E402
 
 #: The forward goal (s): paper size, class3, 5 mm advance from rest, 2 ranks.
 FORWARD_GOAL_S = 5.0
+#: Issue 53's goals, default solver and method on 2 ranks: fine's solve time per vertex at
+#: most this multiple of paper's, and fine's peak memory (MiB, summed over ranks).
+FINE_PER_VERTEX, FINE_PEAK_MIB = 1.3, 4096.0
 #: The tangent study's preconditioners: the kept factorisation (the default), GAMG.
 TANGENT_PCS = ("factorisation", "gamg")
 
@@ -33,6 +36,7 @@ def forward(args) -> None:
     """Forward equilibrium across resolutions, presets and rank counts: time, memory,
     iterations. Iterative presets run up to ``--iterative-up-to`` (they take ~100x longer)."""
     rows, times, goals = [], {}, []   # times: label -> [(dofs, s)]
+    default2 = {}   # resolution -> report of the default solver and method on 2 ranks
     head = ["resolution", "vertices", "dofs", "ranks", "solver", "method", "its", "KSP its",
             "shifts", "factorisations", "assemble s", "linear solve s", "equilibrium s",
             "peak RSS MiB", "goal err mm"]
@@ -47,8 +51,10 @@ def forward(args) -> None:
                                                args.methods.split(",")):
                 if solver == "cholmod" and n > 1:
                     continue   # PETSc's CHOLMOD is sequential
-                if i > last_all and (solver, method) != ("direct", "qn"):
-                    continue   # beyond --all-up-to: the default solver only
+                if solver == "amg" and method != "qn":
+                    continue   # quasi-Newton's factor replaced; Newton on it is gamg's
+                if i > last_all and method != "qn" or i > last_all and solver == "cholmod":
+                    continue   # beyond --all-up-to: quasi-Newton on the factor or on AMG
                 r = simulate(res, solver, n, extra=["--method", method])
                 if "error" in r:
                     rows.append([res, "", "", n, solver, method, f"failed: {r['error'][:60]}"]
@@ -57,8 +63,10 @@ def forward(args) -> None:
                     t = r["timings_s"]
                     times.setdefault(f"{solver} {method}, {ranks_label(n)}", []).append(
                         (3 * r["n_vertices"], t["solve"]))
+                    if (n, method) == (2, "qn"):
+                        default2.setdefault(res, {})[solver] = r
                     if (res, n, solver, method) == ("paper", 2, "direct", "qn"):
-                        goals = [goal("forward, rest to a 5 mm advance, paper, 2 ranks "
+                        goals += [goal("forward, rest to a 5 mm advance, paper, 2 ranks "
                                       "(forward)", t["solve"], "s", limit=FORWARD_GOAL_S,
                                       source="the paper: 32 s on 6 cores")]
                     rows.append([res, r["n_vertices"], 3 * r["n_vertices"], n, solver, method,
@@ -68,6 +76,7 @@ def forward(args) -> None:
                                  f"**{t['solve']:.2f}**", f"{r['peak_rss_mb']:.0f}",
                                  f"{r['active_goal_error_max_mm']:.3f}"])
                 print(rows[-1], flush=True)
+    goals += _scale_goals(default2)
     body = header("Forward equilibrium (rest to 5 mm mandible advance, class3)", args) + [
         "`method`: quasi-Newton (L-BFGS on one kept factorisation, the default) or Newton "
         "(a factorisation per step); `its` counts its nonlinear iterations. "
@@ -78,13 +87,37 @@ def forward(args) -> None:
         "like MUMPS it shifts K until it is positive definite (a failed Cholesky). "
         + (f"GAMG is run up to `{args.iterative_up_to}`." if "gamg" in args.solvers else
            "GAMG is left out (`--solvers gamg`; docs/decisions.md).")
-        + f" Beyond `{args.all_up_to}` only the default (direct, qn) runs.", "",
+        + " `amg` (quasi-Newton only) takes CG with GAMG to 1e-2 for the factor "
+        "(`fem.policy.PRESETS`)."
+        + f" Beyond `{args.all_up_to}` only quasi-Newton on `direct` and `amg` runs.", "",
         *table(head, rows)]
     png = series_plot("forward", times, "dofs", "equilibrium s", logx=True,
                       goal_line=FORWARD_GOAL_S)
     body += ["", f"![forward]({png})", "",
              *_tangent_table(levels, max(map(int, args.ranks.split(","))))]
     write_section("forward", "\n".join(body), goals)
+
+
+def _scale_goals(default2: dict) -> list:
+    """Issue 53's goal rows from the reports (`default2`: resolution -> {solver: simulate.py's
+    report}, quasi-Newton on 2 ranks) where both paper and fine ran: each size's fastest
+    solver for the time per vertex, fine's leanest for the memory."""
+    if not {"paper", "fine"} <= set(default2):
+        return []
+
+    def per_vertex(r):
+        return r["timings_s"]["solve"] / r["n_vertices"]
+
+    best = {k: min(default2[k].items(), key=lambda kv: per_vertex(kv[1]))
+            for k in ("paper", "fine")}
+    lean = min(default2["fine"].items(), key=lambda kv: kv[1]["peak_rss_mb"])
+    (fs, fine), (ps, paper) = best["fine"], best["paper"]
+    return [goal("fine / paper, solve time per vertex, fastest solvers, 2 ranks (forward)",
+                 per_vertex(fine) / per_vertex(paper), "", limit=FINE_PER_VERTEX,
+                 source="issue 53", note=f"fine {fine['timings_s']['solve']:.1f} s ({fs}), "
+                 f"paper {paper['timings_s']['solve']:.2f} s ({ps})"),
+            goal(f"fine, peak memory summed over ranks, {lean[0]}, 2 ranks (forward)",
+                 lean[1]["peak_rss_mb"], "MiB", limit=FINE_PEAK_MIB, source="issue 53")]
 
 
 def _tangent_table(levels, n: int) -> list:

@@ -131,14 +131,20 @@ def test_penalty_coupling_matches_finite_differences(eq):
 
 
 def test_presets_agree(mandible_only, tiny_anatomy):
+    """Every linear-solver preset ends at the same equilibrium, within the solver's accuracy:
+    `amg`, whose quasi-Newton takes CG with GAMG to 1e-2 for the factor, included."""
+    from fem.policy import PRESETS
+
     res = {}
-    for solver in ("direct", "gamg"):
+    for solver in PRESETS:
         s = mandible_only(tiny_anatomy, solver=solver)
         s.solve({"mandible.advance_mm": 4.0})
         res[solver] = s.landmarks(["Pg", "Li"])
         s.eq.destroy()
-    for k in res["direct"]:
-        np.testing.assert_allclose(res["gamg"][k], res["direct"][k], atol=1e-3)
+    assert {"gamg", "amg"} <= set(res)
+    for solver in res:
+        for k in res["direct"]:
+            np.testing.assert_allclose(res[solver][k], res["direct"][k], atol=1e-3)
 
 
 def test_first_order_prediction_warm_start_saves_newton_steps(mandible_scene):

@@ -228,6 +228,16 @@ def test_plan_with_the_tangents_own_preconditioner(tmp_path):
                                atol=0.01)
 
 
+@pytest.mark.mpi
+def test_plan_without_a_factor(tmp_path):
+    """Targets from simulate.py at a known p*; plan.py with ``--solver amg`` (no factor: CG
+    with GAMG for quasi-Newton, the tangents and the sensitivities, 2 ranks) recovers p* and
+    plans what the factorisation plans (1 rank) within 0.01 mm and 0.01 degrees."""
+    reports = _recover(tmp_path, [], [(1, []), (2, ["--solver", "amg"])])
+    np.testing.assert_allclose(reports[2]["params_optimal"], reports[1]["params_optimal"],
+                               atol=0.01)
+
+
 def test_plan_checkpoint_and_resume(tmp_path):
     """A plan cut after 2 iterations and resumed from its checkpoint ends where the same
     plan run at once ends, with one continuous history; a checkpoint of another plan is
