@@ -29,11 +29,11 @@ PRESETS = {
 }
 #: ``amg``: no factor. Quasi-Newton's initial inverse Hessian is CG on K with the tangent's
 #: GAMG (`TANGENT_GAMG`), stopped at a relative residual of 1e-2: L-BFGS needs K⁻¹ only
-#: roughly. class3, 5 mm advance from rest, 2 ranks, one session (AMD EPYC): fine 43.2 s and
-#: 3.5 GB against the factor's 51.3 s and 7.9 GB, 24 iterations against 25, the landmarks
-#: within 1e-4 mm; paper 7.7 s and 0.84 GB against 3.5 s and 1.4 GB. rtol 1e-1: 230
-#: iterations at fine; without GAMG's threshold 55.9 s. No inertia: K must stay positive
-#: definite on the way (docs/solver.md).
+#: roughly. class3, 5 mm advance from rest, 2 ranks (`bench.py forward`, AMD EPYC): fine
+#: 45.7 s and 3.5 GB against the factor's 50.7 s and 7.7 GB, the landmarks within 1e-4 mm;
+#: paper 6.4 s and 1.0 GB against 3.5 s and 1.4 GB. rtol 1e-1: 230 iterations at fine;
+#: without GAMG's threshold 55.9 s against 43.2 s (docs/decisions.md). No inertia: K must
+#: stay positive definite on the way (docs/solver.md).
 PRESETS["amg"] = {**PRESETS["gamg"], "ksp_rtol": 1e-2, "ksp_max_it": 200,
                   "pc_gamg_threshold": 0.02}
 #: The tangent solves' own preconditioner, for scenes too large for a factorisation to serve

@@ -31,11 +31,10 @@ read it 3208 HU under gamma 1.25). A voxel is metal where the scan saturates (at
 under the lower of two extensions above bone: the upper segment's slope, and the slope at
 bone of the parabola through the three classes. Other voxels read below `METAL_HU`.
 
-A scan whose classes already lie at those
-HU (`HU_TOLERANCE`) is taken as HU and left as it is (source ``"hu"``); any other is
-mapped (``"estimated"``); a scene file's ``"calibration": "none"`` takes its values as they
-are, thresholds included (``"given"``). A volume with no bone class above its soft tissue
-is refused with one line.
+A scan whose classes already lie at those HU (`HU_TOLERANCE`) is taken as HU and left as it
+is (source ``"hu"``); any other is mapped (``"estimated"``); a scene file's ``"calibration":
+"none"`` takes its values as they are, thresholds included (``"given"``). A volume with no
+bone class above its soft tissue is refused with one line.
 """
 
 from __future__ import annotations

@@ -113,7 +113,6 @@ def teeth_report(anatomy) -> dict:
     return out
 
 
-
 def lopsided_teeth(teeth: dict, segments) -> dict:
     """{segment: why} of the ``segments`` (names) whose teeth in `teeth_report`'s ``teeth``
     hold less than `LOPSIDED_SHARE` of their mirror segment's area (``name_L`` against
