@@ -53,7 +53,7 @@ def forward(args) -> None:
                     continue   # PETSc's CHOLMOD is sequential
                 if solver == "amg" and method != "qn":
                     continue   # quasi-Newton's factor replaced; Newton on it is gamg's
-                if i > last_all and method != "qn" or i > last_all and solver == "cholmod":
+                if i > last_all and (method != "qn" or solver == "cholmod"):
                     continue   # beyond --all-up-to: quasi-Newton on the factor or on AMG
                 r = simulate(res, solver, n, extra=["--method", method])
                 if "error" in r:
