@@ -157,6 +157,11 @@ class Cases:
     def shared(cls, cases: list, comm) -> "Cases":
         return cls(list(enumerate(cases)), [c.name for c in cases], comm)
 
+    @property
+    def lead(self) -> bool:
+        """This rank speaks for its group's cases (rank 0 of their scenes)."""
+        return all(c.scene.domain.comm.rank == 0 for _, c in self.local)
+
     def stack(self, z, n_theta: int, jacobian: bool):
         """Residuals per case (in order) and the joint Jacobian (K, nθ + 6 n_cases) at z =
         (θ, g_1, ...), each group solving its cases, then shared with every rank. An error
@@ -170,8 +175,7 @@ class Cases:
             except (SolverError, InputError) as e:   # the same on the group's ranks
                 error = (type(e), str(e))
                 break
-        lead = all(c.scene.domain.comm.rank == 0 for _, c in self.local)
-        parts = self.comm.allgather((mine if lead else [], error))
+        parts = self.comm.allgather((mine if self.lead else [], error))
         for _, err in parts:
             if err is not None:
                 raise err[0](err[1])
@@ -187,6 +191,11 @@ class Cases:
             block[:, n_theta + 6 * i:n_theta + 6 * i + 6] = j[:, n_theta:]
             js.append(block)
         return rs, np.vstack(js)
+
+
+def _rms(names, rs) -> dict:
+    """{case name: RMS (mm) of its residuals}."""
+    return dict(zip(names, (float(np.sqrt(np.mean(r ** 2))) for r in rs)))
 
 
 def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
@@ -205,7 +214,7 @@ def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
         np.concatenate([b, np.full(6 * n, s)]) for b, s in zip(bounds, (-np.inf, np.inf)))
     z, mu = mean.copy(), 1e-3
     rs, J = cases.stack(z, nt, True)
-    before = dict(zip(cases.names, (float(np.sqrt(np.mean(r ** 2))) for r in rs)))
+    before = _rms(cases.names, rs)
 
     def objective(res, t):
         r = np.concatenate(res)
@@ -231,6 +240,7 @@ def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
             mu *= 10
         if not trial_value < value:
             converged = True   # no step lowers it: a minimum, to the solver's accuracy
+            cases.stack(z, nt, False)   # the scenes back from the last trial
             break
         mu = max(mu / 10, 1e-9)
         step, z, value = trial - z, trial, trial_value
@@ -239,8 +249,7 @@ def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
         if np.abs(step[:nt]).max() < STEP_TOL:
             converged = True
             break
-    rs, J = cases.stack(z, nt, True)
-    info = J.T @ J / noise_mm ** 2
+    info = J.T @ J / noise_mm ** 2   # rs and J are z's: stacked where z was taken
     posterior = np.linalg.inv(info + P0)[:nt, :nt]
     # what the data see of θ, the registrations being free: the Schur complement
     a, b, c = info[:nt, :nt], info[:nt, nt:], info[nt:, nt:] + P0[nt:, nt:]
@@ -253,6 +262,6 @@ def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
             unseen.append({"direction": {n: round(float(w), 3) for n, w in
                                          zip(prior.names, v) if abs(w) > 0.2},
                            "information": ratio})
-    after = dict(zip(cases.names, (float(np.sqrt(np.mean(r ** 2))) for r in rs)))
+    after = _rms(cases.names, rs)
     return Fit(z[:nt], posterior, unseen, before, after, it, converged, history,
                {k: z[nt + 6 * i:nt + 6 * i + 6].tolist() for i, k in enumerate(cases.names)})

@@ -49,8 +49,8 @@ def _names(paths) -> list:
 def _gathered(cases, what) -> dict:
     """{case name: what(case)} over every group's cases. Collective over ``cases.comm``."""
     mine = {cases.names[i]: what(c) for i, c in cases.local}
-    lead = all(c.scene.domain.comm.rank == 0 for _, c in cases.local)
-    return {k: v for part in cases.comm.allgather(mine if lead else {}) for k, v in part.items()}
+    return {k: v for part in cases.comm.allgather(mine if cases.lead else {})
+            for k, v in part.items()}
 
 
 def _case(path, material, comm, name):

@@ -5,7 +5,6 @@ cuts, misplaced, noised: nothing of `inverse.postop.synthetic_postop`'s construc
 measured by validate.py --measure-bone as a user runs it."""
 
 import json
-import sys
 
 import numpy as np
 import pytest
@@ -13,6 +12,7 @@ from hostile_postop import VARIANTS, hostile_postop, rms_mm, truth
 from test_ct import (
     CRANIUM,
     CT_SCENE,
+    VALIDATE,
     _one_line_error,
     _run,
     cache,  # noqa: F401 (a fixture: the module's fresh mesh cache)
@@ -22,7 +22,6 @@ from test_scripts import ROOT
 
 #: The tests' tier (conftest.py): post-operative CTs through the scripts.
 TIER = "scripts"
-VALIDATE = [sys.executable, str(ROOT / "scripts" / "validate.py")]
 #: The issue's bound on each segment's measured motion, RMS over its bone (mm).
 RMS_MM = 0.3
 

@@ -15,6 +15,7 @@ from test_ct import (
     CRANIUM,
     CT_SCENE,
     SIMULATE,
+    VALIDATE,
     cache,  # noqa: F401 (a fixture: the module's fresh mesh cache)
     needs_cranium,
 )
@@ -24,7 +25,6 @@ from test_scripts import ROOT, _one_line_error, _run
 TIER = "scripts"
 
 CALIBRATE = [sys.executable, str(ROOT / "scripts" / "calibrate.py")]
-VALIDATE = [sys.executable, str(ROOT / "scripts" / "validate.py")]
 #: The truth's tissue, against the defaults' skin 36, fat 3.25, lean 10.7 kPa.
 TRUTH = {"fat": {"E": 6.5}, "muscle": {"E": 7.0}}
 #: The scan's noise along its normals (mm), and its misplacement (rotation vector °, mm).

@@ -18,6 +18,7 @@ TIER = "scripts"
 CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
 SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]
 PLAN = [sys.executable, str(ROOT / "scripts" / "plan.py")]
+VALIDATE = [sys.executable, str(ROOT / "scripts" / "validate.py")]
 HEADSQ, CRANIUM = HEADSQ_CT, CRANIUM_CT
 EXAMPLES = ROOT / "meshes" / "examples"
 REPORT_KEYS = {"mesh", "n_vertices", "n_cells", "segments", "landmarks", "min_quality",

@@ -5,20 +5,26 @@ mappings and brackets), not by the code under test."""
 
 import dataclasses
 import json
-import sys
 
 import numpy as np
 import pytest
-from test_ct import CRANIUM, EXAMPLES, _one_line_error, _run, cache, needs_cranium  # noqa: F401
+from test_ct import (  # noqa: F401 (cache: a fixture)
+    CRANIUM,
+    CT_SCENE,
+    EXAMPLES,
+    PLAN,
+    SIMULATE,
+    _one_line_error,
+    _run,
+    cache,
+    needs_cranium,
+)
 from test_intensity import REMAPS, _realistic, _with_brackets
-from test_scripts import ROOT
 
 #: The tests' tier (conftest.py): CTs to scenes through the scripts, in a fresh mesh cache.
 TIER = "scripts"
 pytestmark = pytest.mark.usefixtures("cache")
 
-CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
-SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]
 CRANIUM_PLANES = ("midsagittal", "lefort1", "pterygomaxillary")
 #: The issue's bounds on a landmark's predicted motion under a 5 mm LeFort I advance when the
 #: head moves on the voxel grid (mm), per resolution.
@@ -248,7 +254,6 @@ def test_a_landmark_the_view_cuts_is_left_out_with_its_reason(tmp_path):
     rep = _scene(tmp_path / "short", CRANIUM, spec, "coarse")
     assert "Sn" not in rep["landmarks"] and {"N", "Prn"} <= set(rep["landmarks"])
     assert "field of view" in rep["landmarks_left_out"]["Sn"], rep["landmarks_left_out"]
-    r = _run([sys.executable, str(ROOT / "scripts" / "plan.py"), "--mesh", rep["mesh"],
-              "--goal", "midface-advance", "--params-used", "maxilla.advance_mm", "--out",
-              str(tmp_path / "plan")])
+    r = _run(PLAN + ["--mesh", rep["mesh"], "--goal", "midface-advance", "--params-used",
+                     "maxilla.advance_mm", "--out", str(tmp_path / "plan")])
     _one_line_error(r, "Sn")

@@ -13,6 +13,7 @@ import pytest
 from test_ct import (
     CRANIUM,
     CT_SCENE,
+    VALIDATE,
     cache,  # noqa: F401 (a fixture: the module's fresh mesh cache)
     needs_cranium,
 )
@@ -21,7 +22,6 @@ from test_scripts import ROOT, _mpirun, _one_line_error, _run
 #: The tests' tier (conftest.py): validation through the scripts.
 TIER = "scripts"
 
-VALIDATE = [sys.executable, str(ROOT / "scripts" / "validate.py")]
 CASE = ["--case", "class3-asym", "--resolution", "coarse"]
 #: The true movements (class3-asym; Cranium, a LeFort I), and the scan's misplacement:
 #: (rotation vector degrees, translation mm).
