@@ -1,12 +1,7 @@
-"""The only module that knows dolfinx versions. Written for 0.5.2 (Debian 12); 0.9+ names differ.
+"""The only module that knows dolfinx versions: Debian 12's 0.5.2 and PyPI's 0.11
+(``NEW_API``: 0.9 and later), both run by `make test` (docs/install.md).
 
 Version-dependent choices are made once, at import time (scifem habit).
-
-The ``NEW_API`` branches (dolfinx 0.9 and later) never run here: the design card fixes
-Debian's dolfinx 0.5.2, and no CI leg installs another. They are not a supported
-configuration but a map for a port, each written from the 0.9 API's documentation
-(``functionspace``, ``form``, ``create_matrix``, ``Expression``): a port starts by running
-the test suite on a 0.9+ install and fixing what this map got wrong.
 """
 
 from __future__ import annotations
@@ -18,12 +13,23 @@ import os
 import time
 
 import dolfinx
+import dolfinx.cpp
 import dolfinx.fem.petsc as fem_petsc
+import dolfinx.graph
+import dolfinx.io
 import dolfinx.jit
+import dolfinx.mesh
 import numpy as np
+import ufl
 
 VERSION = tuple(int(v) for v in dolfinx.__version__.split(".")[:2])
 NEW_API = VERSION >= (0, 9)
+
+if NEW_API:
+    import basix.ufl
+    from dolfinx.fem.petsc import NewtonSolverNonlinearProblem as _NewtonProblem
+else:
+    from dolfinx.fem.petsc import NonlinearProblem as _NewtonProblem
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +41,12 @@ log = logging.getLogger(__name__)
 # largest form here (sliding, tissues) compiles in under 2 s alone and under 5 s with three
 # processes compiling at once on 2 cores, so a claim 60 s old is dead.
 JIT_WAIT_S = 60
+#: How dolfinx's `mpi_jit` says a compile failed (0.5; 0.9+ on rank 0, on the others).
+_MPI_JIT_FAILED = ("Failed just-in-time compilation", "Failed JIT compilation",
+                   "JIT compilation failed on rank 0")
+#: dolfinx's default JIT options, {name: (value, help)}.
+JIT_DEFAULTS = (dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS if NEW_API
+                else dolfinx.jit.DOLFINX_DEFAULT_JIT_PARAMETERS)
 
 
 def vector_space(mesh, degree: int = 1):
@@ -57,6 +69,63 @@ def scalar_space(mesh, family: str = "DG", degree: int = 0):
     return jit(lambda _: dolfinx.fem.FunctionSpace(mesh, (family, degree)), mesh.comm)
 
 
+def degree(V) -> int:
+    """The polynomial degree of the Lagrange space ``V``."""
+    return V.element.basix_element.degree if NEW_API else V.ufl_element().degree()
+
+
+def create_mesh(comm, cells, x):
+    """A P1 tetrahedral mesh of ``cells`` (n, 4) over the points ``x`` (m, 3), partitioned
+    over ``comm`` from the ranks that hold them."""
+    if NEW_API:
+        element = basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,))
+        return dolfinx.mesh.create_mesh(comm, cells, ufl.Mesh(element), x)
+    element = ufl.VectorElement("Lagrange", ufl.tetrahedron, 1)
+    return dolfinx.mesh.create_mesh(comm, cells, x, ufl.Mesh(element))
+
+
+def facet_tags(mesh, facets, values):
+    """MeshTags of the facets ``facets`` (n, 3), as input vertex indices, with ``values``
+    (n,), from whichever ranks hold them."""
+    tdim = mesh.topology.dim
+    values = np.asarray(values, dtype=np.int32)
+    if NEW_API:
+        ents, vals = dolfinx.io.distribute_entity_data(mesh, tdim - 1, facets, values)
+        adj = dolfinx.graph.adjacencylist(ents)
+    else:
+        ents, vals = dolfinx.cpp.io.distribute_entity_data(cpp_mesh(mesh), tdim - 1, facets,
+                                                            values)
+        adj = dolfinx.cpp.graph.AdjacencyList_int32(ents)
+    return dolfinx.mesh.meshtags_from_entities(mesh, tdim - 1, adj, vals.astype(np.int32))
+
+
+def cell_dofs(table) -> np.ndarray:
+    """The dofs of each local cell (n_cells, k), ghosts included, from ``V.dofmap.list`` (a
+    2-D array in 0.9+, an adjacency list in 0.5)."""
+    if NEW_API:
+        return np.asarray(table)
+    width = table.offsets[1] - table.offsets[0] if len(table.offsets) > 1 else 1
+    return table.array.reshape(-1, width)
+
+
+def cell_nodes(mesh) -> np.ndarray:
+    """The geometry nodes of each local cell (n_cells, 4), ghosts included."""
+    return np.asarray(mesh.geometry.dofmaps[0]) if NEW_API else cell_dofs(mesh.geometry.dofmap)
+
+
+def facet_nodes(mesh, facets) -> np.ndarray:
+    """The geometry nodes (n, 3) of the local facets ``facets`` (n,), in the topology's
+    order."""
+    if NEW_API:
+        return dolfinx.mesh.entities_to_geometry(mesh, 2, facets)
+    return dolfinx.cpp.mesh.entities_to_geometry(cpp_mesh(mesh), 2, facets, False)
+
+
+def newton_problem(residual, u, bcs, jacobian):
+    """The problem dolfinx's ``NewtonSolver`` takes (the tutorial recipe's)."""
+    return _NewtonProblem(residual, u, bcs=list(bcs), J=jacobian)
+
+
 def cpp_mesh(mesh):
     """The C++ mesh object behind a Python ``dolfinx.mesh.Mesh`` (for ``dolfinx.cpp`` calls)."""
     return getattr(mesh, "_cpp_object", None) or mesh._mesh
@@ -70,7 +139,7 @@ def petsc_vec(u):
 def _release_dead_claims():
     """Set aside (as FFCx does a failed compile, to ``.c.failed``) every JIT claim of the
     cache older than ``JIT_WAIT_S`` and never marked ready, with a warning naming it."""
-    cache = dolfinx.jit.get_parameters()["cache_dir"]
+    cache = (dolfinx.jit.get_options() if NEW_API else dolfinx.jit.get_parameters())["cache_dir"]
     for c in sorted(cache.glob("libffcx_*.c")):
         try:
             if (c.with_suffix(".c.cached").exists()
@@ -95,7 +164,7 @@ def jit(compile_, comm):
     except (TimeoutError, RuntimeError) as e:
         timed_out = "JIT compilation timed out" in str(e)
         if isinstance(e, RuntimeError):
-            if "Failed just-in-time compilation" not in str(e):   # not mpi_jit's
+            if not any(m in str(e) for m in _MPI_JIT_FAILED):   # not mpi_jit's
                 raise
             timed_out = comm.allreduce(timed_out, op=MPI.LOR)
         if not timed_out:

@@ -17,7 +17,6 @@ import dataclasses
 import dolfinx
 import numpy as np
 import ufl
-from dolfinx import cpp as _cpp
 
 from fem import compat
 from meshes.anatomy import DIRICHLET_TAGS, Landmark
@@ -63,7 +62,7 @@ class Domain:
 
     @property
     def degree(self) -> int:
-        return self.V.ufl_element().degree()
+        return compat.degree(self.V)
 
     @property
     def input_index(self) -> np.ndarray:
@@ -135,9 +134,7 @@ class Domain:
         rank whatever the partition. Collective."""
         keep = (np.ones(len(self.facet_tags.values), bool) if tags is None
                 else np.isin(self.facet_tags.values, list(tags)))
-        facets = self.facet_tags.indices[keep]
-        # oriented out of the tissue (dolfinx orients boundary facets), for smooth shading
-        nodes = _cpp.mesh.entities_to_geometry(compat.cpp_mesh(self.mesh), 2, facets, True)
+        nodes = _outward(self.mesh, self.facet_tags.indices[keep])
         glob = np.asarray(self.mesh.geometry.input_global_indices, dtype=np.int64)[nodes]
         tri = np.concatenate(self.comm.allgather(glob.reshape(-1, 3)))
         tag = np.concatenate(self.comm.allgather(self.facet_tags.values[keep]))
@@ -163,7 +160,7 @@ class Domain:
         original vertex indices (n_cells, 4). Collective."""
         n = self.mesh.topology.index_map(3).size_local
         if cell_values is None:
-            nodes = self.mesh.geometry.dofmap.array.reshape(-1, 4)[:n]
+            nodes = compat.cell_nodes(self.mesh)[:n]
             cell_values = np.asarray(self.mesh.geometry.input_global_indices,
                                      dtype=np.int64)[nodes]
         vals = np.asarray(cell_values)[:n].reshape(n, -1)
@@ -233,6 +230,19 @@ class PointOperator:
         np.add.at(o, self.block, self.weight[:, None] * g[self.point])
 
 
+def _outward(mesh, facets: np.ndarray) -> np.ndarray:
+    """The geometry nodes (n, 3) of the local facets ``facets`` (n,), ordered so that their
+    normal points out of their (first) cell: out of the tissue on the boundary."""
+    nodes = np.array(compat.facet_nodes(mesh, facets), dtype=np.int64).reshape(-1, 3)
+    f2c = mesh.topology.connectivity(mesh.topology.dim - 1, mesh.topology.dim)
+    cell = compat.cell_nodes(mesh)[f2c.array[f2c.offsets[facets]]]
+    x = mesh.geometry.x[:, :3]
+    a, b, c = (x[nodes[:, k]] for k in range(3))
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), x[cell].mean(axis=1) - a) > 0
+    nodes[inward] = nodes[inward][:, [0, 2, 1]]
+    return nodes
+
+
 def _on_root(comm: MPI.Comm, index: np.ndarray, values: np.ndarray, n: int, root: int):
     """The rows ``values`` (K, k) each rank holds at ``index`` (K,), placed in one (n, k)
     array on ``root``; None elsewhere."""
@@ -293,19 +303,15 @@ def create_domain(source, comm: MPI.Comm = MPI.COMM_WORLD, root: int = 0,
     if isinstance(meta, Exception):
         raise meta
     tissues = comm.bcast(anatomy.tissues if comm.rank == root else None, root=root)
-    domain = ufl.Mesh(ufl.VectorElement("Lagrange", ufl.tetrahedron, 1))
-    mesh = dolfinx.mesh.create_mesh(comm, cells, x, domain)
+    mesh = compat.create_mesh(comm, cells, x)
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim - 1, 0)
     mesh.topology.create_connectivity(tdim - 1, tdim)
-    ents, vals = _cpp.io.distribute_entity_data(compat.cpp_mesh(mesh), tdim - 1, facets,
-                                                values.astype(np.int32))
-    adj = _cpp.graph.AdjacencyList_int32(ents)
-    ft = dolfinx.mesh.meshtags_from_entities(mesh, tdim - 1, adj, vals.astype(np.int32))
+    ft = compat.facet_tags(mesh, facets, values)
     V = compat.vector_space(mesh, degree)
     # the first 4 dofs of a cell are its vertices, in the geometry's order; P2 edges follow
-    gdofs = mesh.geometry.dofmap.array.reshape(-1, 4)
-    vdofs = V.dofmap.list.array.reshape(len(gdofs), -1)
+    gdofs = compat.cell_nodes(mesh)
+    vdofs = compat.cell_dofs(V.dofmap.list)
     ends = np.array([(k, k) for k in range(4)] + _EDGES[:vdofs.shape[1] - 4])
     n_blocks = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
     node_of_block = np.full(n_blocks, -1, dtype=np.int64)

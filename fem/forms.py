@@ -157,7 +157,7 @@ class EnergyForms:
     @staticmethod
     def _fill_cells(f, values):
         """A DG0 field's value per local cell (ghosts included), in cell order."""
-        f.x.array[f.function_space.dofmap.list.array] = values
+        f.x.array[compat.cell_dofs(f.function_space.dofmap.list)[:, 0]] = values
 
     # --- the material and its parameters θ (`fem.material.theta_names`)
 
@@ -215,7 +215,7 @@ class EnergyForms:
         tdim = domain.mesh.topology.dim
         self.turn = dolfinx.fem.Function(compat.tensor_space(domain.mesh), name="turn")
         f2c = domain.mesh.topology.connectivity(tdim - 1, tdim)
-        cell_block = self.turn.function_space.dofmap.list.array
+        cell_block = compat.cell_dofs(self.turn.function_space.dofmap.list)[:, 0]
         self._turn_blocks = []
         for tag in tags:
             facets = domain.facet_tags.indices[domain.facet_tags.values == tag]
@@ -233,9 +233,12 @@ class EnergyForms:
         fields += [np.stack([-x[:, 1], x[:, 0], 0 * x[:, 0]], 1),
                    np.stack([0 * x[:, 0], -x[:, 2], x[:, 1]], 1),
                    np.stack([x[:, 2], 0 * x[:, 0], -x[:, 0]], 1)]
-        for vec, f in zip(vecs, fields):
+        for k, (vec, f) in enumerate(zip(vecs, fields)):   # Gram-Schmidt, twice is enough
             vec.setArray(f.ravel())
-        dolfinx.la.orthonormalize(vecs)
+            for _ in range(2):
+                for w in vecs[:k]:
+                    vec.axpy(-w.dot(vec), w)
+            vec.normalize()
         ns = PETSc.NullSpace().create(vectors=vecs, comm=self.domain.comm)
         self.A.setNearNullSpace(ns)
 

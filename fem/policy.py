@@ -27,6 +27,9 @@ PRESETS = {
              "mg_levels_pc_type": "jacobi", "mg_levels_ksp_chebyshev_esteig_steps": 20,
              "ksp_norm_type": "unpreconditioned"},
 }
+#: The PETSc package (its configure name) each factorising preset needs: PyPI's PETSc has
+#: no SuiteSparse, hence no CHOLMOD (`available`).
+NEEDS = {"direct": "mumps", "cholmod": "suitesparse"}
 #: ``amg``: no factor. Quasi-Newton's initial inverse Hessian is CG on K with the tangent's
 #: GAMG (`TANGENT_GAMG`), stopped at a relative residual of 1e-2: L-BFGS needs K⁻¹ only
 #: roughly. class3, 5 mm advance from rest, 2 ranks (`bench.py forward`, AMD EPYC): fine
@@ -56,6 +59,13 @@ METHODS = {
 #: Per-method defaults of xtol (mm), max_it and lag_its (see `fem.equilibrium.Equilibrium`).
 METHOD_DEFAULTS = {"qn": dict(xtol=0.005, max_it=40, lag_its=30),
                    "newton": dict(xtol=0.1, max_it=25, lag_its=0)}
+
+
+def available(solver: str) -> bool:
+    """Whether this PETSc has what the preset ``solver`` needs (`NEEDS`)."""
+    from petsc4py import PETSc
+
+    return solver not in NEEDS or PETSc.Sys.hasExternalPackage(NEEDS[solver])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,6 +205,10 @@ class EquilibriumOptions:
         if self.solver not in PRESETS:
             raise InputError(f"unknown solver preset {self.solver!r}; choose one of "
                              f"{list(PRESETS)}")
+        if not available(self.solver):
+            raise InputError(f"solver preset {self.solver!r} needs PETSc with "
+                             f"{NEEDS[self.solver]}, which this PETSc lacks: choose one of "
+                             f"{[s for s in PRESETS if available(s)]}")
         if self.method not in METHODS:
             raise InputError(f"unknown method {self.method!r}; choose one of {list(METHODS)}")
         if not isinstance(self.options, dict):

@@ -10,6 +10,8 @@ from petsc4py import PETSc
 import numpy as np
 
 Reason = PETSc.SNES.ConvergedReason
+#: A residual norm that is NaN or infinite (DIVERGED_FUNCTION_NANORINF in newer PETSc).
+DIVERGED_NAN = getattr(Reason, "DIVERGED_FNORM_NAN", None) or Reason.DIVERGED_FUNCTION_NANORINF
 
 
 class StoppingTest:
@@ -72,7 +74,7 @@ class StoppingTest:
             self.norms = []
         self.norms.append(fnorm)
         if not np.isfinite(fnorm):
-            return Reason.DIVERGED_FNORM_NAN
+            return DIVERGED_NAN
         if fnorm <= self.atol:
             return Reason.CONVERGED_FNORM_ABS
         if it == 0:

@@ -15,7 +15,6 @@ from petsc4py import PETSc
 import dolfinx
 import numpy as np
 import ufl
-from dolfinx.fem.petsc import NonlinearProblem
 from dolfinx.nls.petsc import NewtonSolver
 
 from fem import compat
@@ -82,7 +81,7 @@ def lu_newton(residual, u, bcs, jacobian, **settings):
     ``NonlinearProblem`` and ``NewtonSolver`` with a MUMPS LU each step, its attributes
     ``settings`` (e.g. ``convergence_criterion``, ``rtol``, ``max_it``): the solver."""
     solver = NewtonSolver(u.function_space.mesh.comm,
-                          NonlinearProblem(residual, u, bcs=list(bcs), J=jacobian))
+                          compat.newton_problem(residual, u, bcs, jacobian))
     for k, val in settings.items():
         setattr(solver, k, val)
     ksp = solver.krylov_solver

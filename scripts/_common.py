@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
+import traceback
 from pathlib import Path
 
 #: The two real example CTs (docs/anatomy.md): Debian's invesalius-examples (an upper face)
@@ -28,10 +29,10 @@ def parse(ap, argv=None):
         check_options(args)
     except InputError as e:   # before any work, on every rank alike
         _one_line_error(str(e))
-    import petsc4py
+    from mpi4py import MPI  # first: it loads the MPI library PETSc links (PyPI's MPICH)
+    from petsc4py import init as petsc_init
 
-    petsc4py.init([sys.argv[0], *rest])
-    from mpi4py import MPI
+    petsc_init([sys.argv[0], *rest])
 
     comm = MPI.COMM_WORLD
     # our progress on rank 0; the libraries' INFO (FFCx's compiler lines on a fresh machine:
@@ -316,3 +317,11 @@ def run_main(main) -> int:
         if MPI.COMM_WORLD.rank == 0:
             print(f"error: {e}", file=sys.stderr)
         return 2
+    except Exception:   # a bug on one rank: the others would wait for it in a collective
+        from mpi4py import MPI
+
+        if MPI.COMM_WORLD.size == 1:
+            raise
+        traceback.print_exc()
+        sys.stderr.flush()
+        MPI.COMM_WORLD.Abort(1)

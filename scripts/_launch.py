@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import re
@@ -29,13 +30,27 @@ CHROMIUM_ARGS = ("--headless=new", "--no-sandbox", "--use-gl=swiftshader",
 
 
 def mpirun(n: int) -> list:
-    """The command prefix that runs a program on n ranks ([] for one); as root, with
-    OpenMPI's --allow-run-as-root, and --oversubscribe beyond the cores."""
+    """The command prefix that runs a program on n ranks ([] for one) with the launcher of
+    this Python's own MPI: the venv's (PyPI's MPICH) where it has one, else the PATH's
+    (Debian's Open MPI, run as root with --allow-run-as-root, and --oversubscribe beyond
+    the cores)."""
     if n <= 1:
         return []
-    exe = shutil.which("mpirun") or shutil.which("mpiexec")
-    extra = ["--allow-run-as-root", "--oversubscribe"] if os.geteuid() == 0 else []
+    exe = _launcher()
+    extra = (["--allow-run-as-root", "--oversubscribe"]
+             if os.geteuid() == 0 and _is_open_mpi(exe) else [])
     return [exe, *extra, "-n", str(n)]
+
+
+def _launcher() -> str:
+    own = Path(sys.executable).parent / "mpirun"
+    return str(own) if own.exists() else shutil.which("mpirun") or shutil.which("mpiexec")
+
+
+@functools.cache
+def _is_open_mpi(exe: str) -> bool:
+    out = subprocess.run([exe, "--version"], capture_output=True, text=True)
+    return "Open MPI" in out.stdout + out.stderr
 
 
 @contextlib.contextmanager

@@ -149,10 +149,10 @@ def _tangent_table(levels, n: int) -> list:
 
 def tangent_work(res: str, pc: str) -> None:
     """One worker (under mpirun): the tangent study's row at ``res`` with ``pc``."""
-    import petsc4py
+    from mpi4py import MPI  # first: it loads the MPI library PETSc links (PyPI's MPICH)
+    from petsc4py import init as petsc_init
 
-    petsc4py.init([sys.argv[0]])
-    from mpi4py import MPI
+    petsc_init([sys.argv[0]])
     from petsc4py import PETSc
 
     from fem.policy import TANGENT_GAMG

@@ -148,10 +148,10 @@ def _planning(res: str, comm) -> dict:
 
 def work(res: str) -> None:
     """One worker (under mpirun): every peer at ``res``; JSON on stdout (rank 0)."""
-    import petsc4py
+    from mpi4py import MPI  # first: it loads the MPI library PETSc links (PyPI's MPICH)
+    from petsc4py import init as petsc_init
 
-    petsc4py.init([sys.argv[0]])
-    from mpi4py import MPI
+    petsc_init([sys.argv[0]])
 
     from scripts._bench import result
 

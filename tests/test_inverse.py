@@ -5,12 +5,15 @@ from mpi4py import MPI
 import numpy as np
 import pytest
 
+from fem.policy import available
 from fem.verification import taylor_test
 from inverse.planner import reduced_step
 from meshes.errors import InputError
 
 #: The tests' tier (conftest.py): planning on the tiny heads.
 TIER = "integration"
+#: Tests of the CHOLMOD preset: PyPI's PETSc has no SuiteSparse.
+NEEDS_CHOLMOD = pytest.mark.skipif(not available("cholmod"), reason="this PETSc has no CHOLMOD")
 
 
 @pytest.fixture
@@ -389,7 +392,7 @@ def test_corrected_prediction_follows_the_path_where_first_order_inverts(mandibl
     pred.destroy()
 
 
-@pytest.mark.parametrize("solver", ["direct", "cholmod"])
+@pytest.mark.parametrize("solver", ["direct", pytest.param("cholmod", marks=NEEDS_CHOLMOD)])
 def test_block_sensitivity_equals_column_solves(mandible_only, tiny_anatomy, solver,
                                                monkeypatch):
     """dx/dp from one factorisation at the equilibrium and one block solve (MUMPS or

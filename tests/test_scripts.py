@@ -424,9 +424,8 @@ def test_a_claim_left_by_a_killed_compile_does_not_block_the_next(tmp_path, monk
 
     from fem import compat
 
-    default = dolfinx.jit.DOLFINX_DEFAULT_JIT_PARAMETERS["cache_dir"]
-    monkeypatch.setitem(dolfinx.jit.DOLFINX_DEFAULT_JIT_PARAMETERS, "cache_dir",
-                        (tmp_path, default[1]))
+    default = compat.JIT_DEFAULTS["cache_dir"]
+    monkeypatch.setitem(compat.JIT_DEFAULTS, "cache_dir", (tmp_path, default[1]))
     monkeypatch.setattr(compat, "JIT_WAIT_S", 1)
     mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
     x = ufl.SpatialCoordinate(mesh)

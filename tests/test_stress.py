@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+from test_inverse import NEEDS_CHOLMOD
 
 from fem.forms import DEFAULT_PENALTY
 from fem.material import NeoHookean
@@ -237,6 +238,7 @@ def test_sliver_mesh_is_reported_and_solves(mandible_only, tiny_anatomy):
 
 
 @pytest.mark.serial
+@NEEDS_CHOLMOD
 def test_cholmod_shifts_on_failed_cholesky(mandible_only, tiny_anatomy):
     """CHOLMOD reports no inertia: an indefinite K fails its Cholesky, which raises the
     shift (the paper's rule), and the result equals MUMPS's."""
