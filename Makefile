@@ -52,8 +52,8 @@ explore: install
 	$(PY) scripts/explore_web.py --plan-report $(PLAN)
 
 # Every tier (tests/conftest.py): unit, integration on the tiny heads, scripts, browser,
-# clients (ParaView); a
-# pytest-xdist worker per core, each test module on one worker (its fixtures built once).
+# clients (ParaView); a pytest-xdist worker per core, each test module on one worker (its
+# fixtures built once). On Debian's dolfinx, then on PyPI's (test-pypi, below).
 test: install
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -n auto --dist loadfile --durations=25

@@ -176,7 +176,12 @@ def _crop_box(spec, volume: Volume):
 def _mesh(labels: np.ndarray, volume: Volume, h: float):
     """CGAL tets of the tissue label: points (N, 3) mm in the scene's frame, cells (M, 4).
     Where CGAL meshes nothing, it is asked again with the image padded (`CGAL_RETRY_PAD`)."""
-    import pygalmesh
+    try:
+        import pygalmesh
+    except ImportError:
+        raise MeshError("a CT scene needs pygalmesh (CGAL's mesher), which is not installed: "
+                        "Debian's python3-pygalmesh, or `pip install pygalmesh` with "
+                        "libcgal-dev and libeigen3-dev") from None
 
     tissue = (labels == seg.TISSUE).astype(np.uint8)
     for pad in (0, CGAL_RETRY_PAD):

@@ -316,12 +316,19 @@ def cache_dir() -> Path:
     return Path(os.environ.get("ORTHODIFF_CACHE", Path.home() / ".cache" / "orthodiff"))
 
 
+def _gmsh_version() -> str:
+    import gmsh
+
+    return gmsh.__version__
+
+
 def synthetic_head(case_name: str = "class3-asym", resolution: str = "coarse") -> Anatomy:
     """The synthetic anatomy of a case at a resolution, from the disk cache when present."""
     case, h = _check(case_name, resolution)
-    key = hashlib.sha1(repr((GENERATOR_VERSION, case, h, Z_LEFORT, Z_OCCLUSAL, Y_BSSO, BAND_MM,
-                              SPLIT_MM, CROWN_MM, VESTIBULE_MM, MUSCLE_MM, SKIN_MM, FAT_HU))
-                       .encode()).hexdigest()[:12]
+    # gmsh's version too: Debian's 4.8 and PyPI's 4.15 mesh a case differently
+    key = hashlib.sha1(repr((GENERATOR_VERSION, _gmsh_version(), case, h, Z_LEFORT, Z_OCCLUSAL,
+                             Y_BSSO, BAND_MM, SPLIT_MM, CROWN_MM, VESTIBULE_MM, MUSCLE_MM,
+                             SKIN_MM, FAT_HU)).encode()).hexdigest()[:12]
     path = cache_dir() / f"{case_name}-{resolution}-{key}.npz"
     if path.exists():
         try:

@@ -44,14 +44,16 @@ def machine() -> str:
 
 
 def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
-              args=None, timeout: float | None = None) -> dict:
+              args=None, timeout: float | None = None, python: str | None = None) -> dict:
+    """A fresh ``script`` (simulate.py) process on n ranks, by ``python`` (default: this
+    interpreter; its own MPI's launcher): its report, or {"error": its last stderr line}."""
     args = args or ["--case", "class3", "--resolution", res, "--solver", solver, "--p",
                     "mandible.advance_mm=5"]
+    python = python or sys.executable
     with tempfile.TemporaryDirectory() as d:
         rep = Path(d) / "r.json"
-        cmd = [sys.executable, str(ROOT / "scripts" / script), *args, "--report", str(rep),
-               *extra]
-        cmd = [*mpirun(n), *cmd]
+        cmd = [python, str(ROOT / "scripts" / script), *args, "--report", str(rep), *extra]
+        cmd = [*mpirun(n, python), *cmd]
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
         try:
             r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
@@ -98,7 +100,7 @@ SECTIONS = {"forward": "forward", "stress": "stress", "plan": "plan", "peers": "
             "accuracy-tolerance": "accuracy", "accuracy-tolerance-qn": "accuracy",
             "accuracy-prediction": "accuracy", "accuracy-gradient": "accuracy",
             "plausibility": "plausibility", "ct": "ct", "validation": "validation",
-            "explorer": "explorer", "bands": "bands"}
+            "explorer": "explorer", "bands": "bands", "targets": "targets"}
 
 INTRO = """# Benchmarks
 

@@ -32,7 +32,8 @@ def parse(ap, argv=None):
     from mpi4py import MPI  # first: it loads the MPI library PETSc links (PyPI's MPICH)
     from petsc4py import init as petsc_init
 
-    petsc_init([sys.argv[0], *rest])
+    # SIGTERM and SIGINT stay ours (`run_main`): PETSc 3.25 (PyPI's) takes them otherwise
+    petsc_init([sys.argv[0], "-no_signal_handler", *rest])
 
     comm = MPI.COMM_WORLD
     # our progress on rank 0; the libraries' INFO (FFCx's compiler lines on a fresh machine:

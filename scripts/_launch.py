@@ -29,21 +29,21 @@ CHROMIUM_ARGS = ("--headless=new", "--no-sandbox", "--use-gl=swiftshader",
                  "--disable-dev-shm-usage")
 
 
-def mpirun(n: int) -> list:
+def mpirun(n: int, python: str | None = None) -> list:
     """The command prefix that runs a program on n ranks ([] for one) with the launcher of
-    this Python's own MPI: the venv's (PyPI's MPICH) where it has one, else the PATH's
-    (Debian's Open MPI, run as root with --allow-run-as-root, and --oversubscribe beyond
-    the cores)."""
+    ``python``'s own MPI (default: this interpreter's): its venv's (PyPI's MPICH) where it
+    has one, else the PATH's (Debian's Open MPI, run as root with --allow-run-as-root, and
+    --oversubscribe beyond the cores)."""
     if n <= 1:
         return []
-    exe = _launcher()
+    exe = _launcher(python or sys.executable)
     extra = (["--allow-run-as-root", "--oversubscribe"]
              if os.geteuid() == 0 and _is_open_mpi(exe) else [])
     return [exe, *extra, "-n", str(n)]
 
 
-def _launcher() -> str:
-    own = Path(sys.executable).parent / "mpirun"
+def _launcher(python: str) -> str:
+    own = Path(python).parent / "mpirun"
     return str(own) if own.exists() else shutil.which("mpirun") or shutil.which("mpiexec")
 
 

@@ -13,11 +13,12 @@
     python3 scripts/bench.py explorer [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py peers [--resolutions tiny,coarse,medium,paper] [--ranks 1,2]
     python3 scripts/bench.py bands [--resolution paper] [--resolution-mc coarse] [--samples 64]
+    python3 scripts/bench.py targets [--resolution paper] [--ranks 1,2] [--solvers direct,amg]
     python3 scripts/bench.py all       # every one above with its defaults: BENCHMARKS.md whole
 
 One module a benchmark: ``bench_forward`` (forward, stress), ``bench_plan``,
 ``bench_accuracy``, ``bench_plausibility``, ``bench_ct``, ``bench_validation``,
-``bench_explorer``, ``bench_peers``, ``bench_bands``; the shared
+``bench_explorer``, ``bench_peers``, ``bench_bands``, ``bench_targets``; the shared
 helpers in ``_bench``. This file checks the options and dispatches.
 
 ``accuracy``: run time against error (issue 5). Each part writes a section of BENCHMARKS.md
@@ -196,6 +197,10 @@ def main():
                         "beside orthodiff, in one run")
     pe.add_argument("--resolutions", default="tiny,coarse,medium,paper")
     pe.add_argument("--ranks", default="1,2")
+    t = sub.add_parser("targets", help="paper forward and plan on Debian's dolfinx and PyPI's")
+    t.add_argument("--resolution", default="paper")
+    t.add_argument("--ranks", default="1,2")
+    t.add_argument("--solvers", default="direct,amg", help="presets both targets have")
     b = sub.add_parser("bands", help="the prediction bands' cost, and against sampling")
     b.add_argument("--resolution", default="paper")
     b.add_argument("--resolution-mc", default="coarse")
@@ -221,6 +226,7 @@ def main():
         bench_peers,
         bench_plan,
         bench_plausibility,
+        bench_targets,
         bench_validation,
     )
 
@@ -229,7 +235,7 @@ def main():
            "plausibility": bench_plausibility.plausibility, "ct": bench_ct.ct,
            "validation": bench_validation.validation,
            "explorer": bench_explorer.explorer, "peers": bench_peers.peers,
-           "bands": bench_bands.bands}
+           "bands": bench_bands.bands, "targets": bench_targets.targets}
     for args in todo:
         print(f"== bench.py {' '.join(args.argv)}", flush=True)
         run[args.what](args)

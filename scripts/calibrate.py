@@ -77,6 +77,9 @@ def _case(path, material, comm, name):
         scene = Scene(lambda: load_tet_mesh(rep["mesh"]), **kw)
     else:
         scene = Scene.from_case(rep["case"], rep["resolution"], **kw)
+    if rep.get("n_vertices") not in (None, scene.domain.n_vertices):
+        raise InputError(f"case {path}: its scene had {rep['n_vertices']} vertices, this one "
+                         f"has {scene.domain.n_vertices} (another mesh or mesher)")
     p = scene.params_from_transforms({k: np.asarray(T) for k, T in rep["transforms"].items()})
     points, tris = read_surface(rep["outcome"])
     rest = read_surface(rep["outcome_rest"]) if rep.get("outcome_rest") else None

@@ -22,6 +22,8 @@ from test_scripts import ROOT
 
 #: The tests' tier (conftest.py): post-operative CTs through the scripts.
 TIER = "scripts"
+#: CT scenes, meshed by CGAL (conftest.py skips them without pygalmesh).
+pytestmark = pytest.mark.cgal
 #: The issue's bound on each segment's measured motion, RMS over its bone (mm).
 RMS_MM = 0.3
 

@@ -14,6 +14,8 @@ from scripts._common import CRANIUM_CT, HEADSQ_CT
 
 #: The tests' tier (conftest.py): CTs to scenes through the scripts.
 TIER = "scripts"
+#: CT scenes, meshed by CGAL (conftest.py skips them without pygalmesh).
+pytestmark = pytest.mark.cgal
 
 CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
 SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]

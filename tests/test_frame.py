@@ -402,6 +402,7 @@ def test_targets_held_along_the_face_axes_recover_the_treatment(tilted_scenes, t
 
 
 @needs_cranium
+@pytest.mark.cgal
 def test_tilted_cranium_landmarks_through_ct_scene(tmp_path):
     """Cranium.inv3 pitched 8 degrees and turned 6 inside the scan (its planes tilted with
     it, the crop the tilted box's bounds), through ct_scene.py with the frame estimated: the
@@ -488,6 +489,7 @@ def flat_synthetic_ct(tmp_path_factory):
 
 @pytest.mark.parametrize("angles, resolution", [(a, "coarse") for a in PITCHED]
                          + [(PITCHED[0], "paper")])
+@pytest.mark.cgal
 def test_tilted_synthetic_ct_landmarks_through_ct_scene(tmp_path, flat_synthetic_ct, angles,
                                                         resolution):
     """The synthetic head with ears and orbits made a CT (2 mm voxels), tilted, through

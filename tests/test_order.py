@@ -56,3 +56,17 @@ def test_p2_equilibrium_and_sensitivity(p2_scene, mandible_scene, central_differ
     fd = central_differences(p2_scene, obj, p)
     err = np.abs(fd - S).max() / np.abs(S).max()
     assert err < 1e-5, err
+
+
+def test_tagged_triangles_face_out_of_the_tissue(tiny_anatomy):
+    """The tagged facets, all of the tissue's boundary, oriented out of it: their flux of x/3
+    (the divergence theorem) is the tissue's volume, summed from its tets."""
+    from meshes.anatomy import signed_volumes
+
+    d = create_domain(tiny_anatomy)
+    tri, _ = d.tagged_triangles()
+    x = tiny_anatomy.points
+    a, b, c = (x[tri[:, k]] for k in range(3))
+    flux = np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0
+    volume = np.abs(signed_volumes(x, tiny_anatomy.cells)).sum()
+    assert abs(flux - volume) < 1e-9 * volume, (flux, volume)

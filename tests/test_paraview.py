@@ -30,9 +30,9 @@ from test_scripts import ROOT, _run
 TIER = "clients"
 
 PVBATCH, XVFB = shutil.which("pvbatch"), shutil.which("Xvfb")
-pytestmark = pytest.mark.skipif(
+pytestmark = [pytest.mark.cgal, pytest.mark.skipif(
     not (PVBATCH and XVFB), reason="ParaView's pvbatch or Xvfb is absent (Debian's "
-    "paraview and xvfb; `make test` installs them)")
+    "paraview and xvfb; `make test` installs them)")]
 
 PROBE = ROOT / "tests" / "paraview_probe.py"
 CLASS3 = ["--case", "class3-asym", "--resolution", "tiny"]

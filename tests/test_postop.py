@@ -31,6 +31,8 @@ from test_validate import (
 
 #: The tests' tier (conftest.py): post-operative CTs through the scripts.
 TIER = "scripts"
+#: CT scenes, meshed by CGAL (conftest.py skips them without pygalmesh).
+pytestmark = pytest.mark.cgal
 
 #: The true movements of the synthetic head (both jaws; Cranium's: test_validate's LeFort I).
 P_SYNTHETIC = {"mandible.advance_mm": 5.0, "mandible.yaw_deg": 2.0, "maxilla.advance_mm": 2.0}

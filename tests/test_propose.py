@@ -103,6 +103,7 @@ def test_proposal_turns_with_a_tilted_head(tmp_path, angles):
 
 @pytest.mark.usefixtures("cache")
 @pytest.mark.parametrize("ct, hand", list(CASES.values()), ids=list(CASES))
+@pytest.mark.cgal
 def test_proposed_file_plans_through_the_scripts(tmp_path, ct, hand):
     """The proposed file, used as it is: ct_scene.py --osteotomies builds the scene with the
     hand-made file's segments, and a plan (targets from simulate.py) recovers p*."""

@@ -23,7 +23,7 @@ from test_intensity import REMAPS, _realistic, _with_brackets
 
 #: The tests' tier (conftest.py): CTs to scenes through the scripts, in a fresh mesh cache.
 TIER = "scripts"
-pytestmark = pytest.mark.usefixtures("cache")
+pytestmark = [pytest.mark.usefixtures("cache"), pytest.mark.cgal]
 
 CRANIUM_PLANES = ("midsagittal", "lefort1", "pterygomaxillary")
 #: The issue's bounds on a landmark's predicted motion under a 5 mm LeFort I advance when the

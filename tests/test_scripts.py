@@ -399,7 +399,8 @@ def test_interrupt_during_a_write_waits_for_it(tmp_path):
 
 def test_a_fresh_machine_sees_no_compiler_lines(tmp_path):
     """With an empty FFCx cache (a new HOME) a script prints its progress but not the JIT's
-    compiler command lines (cffi logs them at INFO through the root logger); -v shows them."""
+    compiler command lines (cffi logs them at INFO through the root logger); -v shows them
+    where they are logged (Python 3.11's distutils; setuptools' on 3.12 logs none)."""
     env = dict(os.environ, HOME=str(tmp_path))
     quiet = _run(SIM + ["--p", "mandible.advance_mm=1"], env=env)
     assert quiet.returncode == 0, quiet.stderr[-2000:]
@@ -407,7 +408,8 @@ def test_a_fresh_machine_sees_no_compiler_lines(tmp_path):
     assert "orthodiff:" in out and "build_ext" not in out and "gcc" not in out
     loud = _run(SIM + ["--p", "mandible.advance_mm=1", "-v"],
                 env=dict(env, HOME=str(tmp_path / "again")))
-    assert loud.returncode == 0 and "build_ext" in loud.stdout + loud.stderr
+    assert loud.returncode == 0, loud.stderr[-2000:]
+    assert "build_ext" in loud.stdout + loud.stderr or sys.version_info >= (3, 12)
 
 
 @pytest.mark.unit

@@ -123,6 +123,7 @@ def _p(params: dict) -> list:
 
 
 @pytest.mark.parametrize("which", ["truth", pytest.param("cranium", marks=needs_cranium)])
+@pytest.mark.cgal
 def test_stable_skin_does_not_move(request, which):
     """The skin registered on (`stable_mask`: the orbits, temples, nasal bridge and forehead)
     moves less than 0.1 mm (class3-asym under P_STAR: its nose below the nasion moves 0.8 mm;
@@ -138,6 +139,7 @@ def test_stable_skin_does_not_move(request, which):
 
 
 @needs_cranium
+@pytest.mark.cgal
 def test_validation_recovers_the_misplacement_and_the_outcome(cranium, validated):
     """validate.py with the true movements on Cranium: the registration undoes the scan's
     misplacement within 0.3 mm and 0.3 degrees, and the prediction meets the scan within
@@ -177,6 +179,7 @@ def own_distances(truth: dict, out) -> tuple:
 
 
 @needs_cranium
+@pytest.mark.cgal
 def test_wrong_movements_report_the_error_the_test_computes(tmp_path, cranium):
     """Validated with no movement at all, on a scan without noise, the report's errors are
     the test's own: the distance from each rest skin vertex to the true outcome's surface,
@@ -202,6 +205,7 @@ def test_wrong_movements_report_the_error_the_test_computes(tmp_path, cranium):
 
 @needs_cranium
 @pytest.mark.mpi
+@pytest.mark.cgal
 def test_validation_is_the_same_on_two_ranks(tmp_path, cranium, validated):
     """validate.py under mpirun -n 2 reports what one rank does."""
     reports = []
