@@ -10,6 +10,7 @@ the settings whole (frozen `fem.policy.EquilibriumOptions`), never writing into 
 
 from __future__ import annotations
 
+from mpi4py import MPI  # noqa: F401 (first: it loads the MPI library PETSc links)
 from petsc4py import PETSc
 
 import dataclasses

@@ -5,6 +5,7 @@ why a quasi-Newton solve stopped early to refactorise (`StoppingTest.refresh`).
 
 from __future__ import annotations
 
+from mpi4py import MPI  # noqa: F401 (first: it loads the MPI library PETSc links)
 from petsc4py import PETSc
 
 import numpy as np

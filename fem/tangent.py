@@ -6,6 +6,7 @@ at once, cached) for adjoints and exploration (`TangentSolves`, a part).
 
 from __future__ import annotations
 
+from mpi4py import MPI  # noqa: F401 (first: it loads the MPI library PETSc links)
 from petsc4py import PETSc
 
 import logging

@@ -12,6 +12,7 @@ assembly of K, no refactorisation.
 
 from __future__ import annotations
 
+from mpi4py import MPI  # noqa: F401 (first: it loads the MPI library PETSc links)
 from petsc4py import PETSc
 
 import logging
