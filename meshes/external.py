@@ -258,7 +258,9 @@ def tetrahedralise(skin_file, bone_file, regions: list, landmarks: dict,
 def _gmsh_between(surfaces, h):
     """Tets between discrete surfaces [(points, tris) outer, (points, tris) inner]; the
     surface triangles are kept as they are. Returns points (outer first) and cells."""
-    import gmsh
+    from meshes._gmsh import import_gmsh
+
+    gmsh = import_gmsh()
 
     gmsh.initialize()
     try:

@@ -200,7 +200,9 @@ def _landmark_rays(case: Case):
 
 def _gmsh_tissue(case: Case, h: float):
     """Mesh the soft tissue with gmsh; returns points (N, 3) and tets (M, 4)."""
-    import gmsh
+    from meshes._gmsh import import_gmsh
+
+    gmsh = import_gmsh()
 
     bone, skin_extra, _, _ = _primitives(case)
     gmsh.initialize(["-noenv"] if hasattr(gmsh, "initialize") else [])
@@ -317,7 +319,9 @@ def cache_dir() -> Path:
 
 
 def _gmsh_version() -> str:
-    import gmsh
+    from meshes._gmsh import import_gmsh
+
+    gmsh = import_gmsh()
 
     return gmsh.__version__
 

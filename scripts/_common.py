@@ -32,8 +32,8 @@ def parse(ap, argv=None):
     from mpi4py import MPI  # first: it loads the MPI library PETSc links (PyPI's MPICH)
     from petsc4py import init as petsc_init
 
-    # SIGTERM and SIGINT stay ours (`run_main`): PETSc 3.25 (PyPI's) takes them otherwise
-    petsc_init([sys.argv[0], "-no_signal_handler", *rest])
+    petsc_init([sys.argv[0], *rest])
+    _own_signals()   # again: PETSc 3.25 (PyPI's) took SIGTERM as it started
 
     comm = MPI.COMM_WORLD
     # our progress on rank 0; the libraries' INFO (FFCx's compiler lines on a fresh machine:
@@ -293,20 +293,27 @@ def read_json(path, what: str, comm):
     return data
 
 
-def run_main(main) -> int:
-    """Run ``main``; report an orthodiff error on rank 0 as one line and exit code 2."""
+def _interrupted(signum, frame):
+    """SIGTERM like Ctrl-C: unwind, once a write is done (`fem.io`)."""
+    io = sys.modules.get("fem.io")     # not imported yet: no write in progress
+    if io is None or io.interrupt_now(signum):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _own_signals() -> None:
+    """SIGTERM, and SIGINT unless the shell ignores it, go to `_interrupted`."""
     import signal
 
+    signal.signal(signal.SIGTERM, _interrupted)
+    if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, _interrupted):
+        signal.signal(signal.SIGINT, _interrupted)
+
+
+def run_main(main) -> int:
+    """Run ``main``; report an orthodiff error on rank 0 as one line and exit code 2."""
     from meshes.errors import OrthodiffError
 
-    def interrupted(signum, frame):   # SIGTERM like Ctrl-C: unwind, once a write is done
-        io = sys.modules.get("fem.io")     # not imported yet: no write in progress
-        if io is None or io.interrupt_now(signum):
-            raise KeyboardInterrupt(f"signal {signum}")
-
-    signal.signal(signal.SIGTERM, interrupted)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, interrupted)
+    _own_signals()
     try:
         return main()
     except KeyboardInterrupt as e:
