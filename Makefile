@@ -64,9 +64,9 @@ check: install
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -m unit
 
-# The second target (docs/install.md): the same suite on PyPI's current FEniCSx (dolfinx 0.11,
-# MPICH) in its own venv, from a Python 3.12 or later (scripts/python312.sh); skipped in one
-# line where the machine has none. pygalmesh has no wheel: pip builds it against Debian's
+# The second target (README: the pip route): the same suite on PyPI's current FEniCSx
+# (dolfinx 0.11, MPICH) in its own venv, from a Python 3.12 or later (scripts/python312.sh);
+# skipped in one line where the machine has none. pygalmesh has no wheel: pip builds it against Debian's
 # CGAL and Eigen; where it cannot, that target's CT tests skip with the reason.
 PYPI_VENV := .venv-pypi
 PYPI_PY := $(PYPI_VENV)/bin/python

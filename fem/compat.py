@@ -1,5 +1,5 @@
 """The only module that knows dolfinx versions: Debian 12's 0.5.2 and PyPI's 0.11
-(``NEW_API``: 0.9 and later), both run by `make test` (docs/install.md).
+(``NEW_API``: 0.9 and later), both run by `make test` (docs/design.md has the API table).
 
 Version-dependent choices are made once, at import time (scifem habit).
 """

@@ -64,8 +64,10 @@ def test_jacobian_matches_finite_differences(eq, rng):
     v.array[:] = direction[:len(v.array)]
     Jv = eq.A.createVecLeft()
     eq.A.mult(v, Jv)
+    # steps in the asymptotic range: on gmsh 4.15's tiny class3 the remainder's rate rises
+    # 1.79, 1.88, 1.94, 1.97, 1.98, 1.99 from h = 0.01 (gmsh 4.8's: 1.95 ... 2.00)
     rate1, rate2 = taylor_test(lambda u: _residual(eq, u).array.copy(), u0, direction,
-                               Jv.array, 0.01 * 0.5 ** np.arange(4))
+                               Jv.array, 0.01 * 0.5 ** np.arange(3, 7))
     eq.u.x.array[:] = u0
     assert np.all(np.abs(rate1 - 1) < 0.1), rate1   # the residual's change: first order
     assert np.all(np.abs(rate2 - 2) < 0.1), rate2   # less K v: second order
