@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from test_scripts import ROOT, _run
 
+from scripts.bench_targets import TARGETS
+
 #: The tests' tier (conftest.py): both targets' interpreters, in fresh processes.
 TIER = "scripts"
-TARGETS = {"debian": ROOT / ".venv" / "bin" / "python",
-           "pypi": ROOT / ".venv-pypi" / "bin" / "python"}
 #: The issue's bound on any landmark's difference between the targets (mm).
 SAME_MM = 1e-6
 
@@ -41,7 +41,7 @@ def answers(tmp_path_factory):
 def test_both_targets_answer_the_same(answers, what):
     """Forward landmarks (mm), dx/dp (mm per unit), the adjoint gradient (mm² per unit), a
     plan's parameters (mm, degrees) and landmarks agree within 1e-6 across the targets."""
-    a, b = answers["debian"][what], answers["pypi"][what]
+    a, b = (answers[k][what] for k in TARGETS)
     if isinstance(a, dict):
         assert a.keys() == b.keys()
         a, b = [a[k] for k in sorted(a)], [b[k] for k in sorted(a)]
