@@ -66,8 +66,8 @@ check: install
 
 # The second target (README: the pip route): the same suite on PyPI's current FEniCSx
 # (dolfinx 0.11, MPICH) in its own venv, from a Python 3.12 or later (scripts/python312.sh);
-# skipped in one line where the machine has none. pygalmesh has no wheel: pip builds it against Debian's
-# CGAL and Eigen; where it cannot, that target's CT tests skip with the reason.
+# skipped in one line where the machine has none. pygalmesh has no wheel: pip builds it
+# against Debian's CGAL and Eigen; where it cannot, that target's CT tests skip with the reason.
 PYPI_VENV := .venv-pypi
 PYPI_PY := $(PYPI_VENV)/bin/python
 
