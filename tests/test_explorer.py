@@ -263,8 +263,7 @@ def cranium_scene(tmp_path_factory):
 
 
 @pytest.mark.browser
-@pytest.mark.parametrize("which", ["synthetic", "cranium"])
-@pytest.mark.cgal
+@pytest.mark.parametrize("which", ["synthetic", pytest.param("cranium", marks=pytest.mark.cgal)])
 def test_the_page_in_headless_chromium(request, tmp_path, which):
     """Real Chromium (SwiftShader WebGL), on the synthetic head and on the Cranium CT's
     scene: the page loads in a skin tone; a slider move draws x0 + S dp (1e-3 mm of the
