@@ -258,33 +258,30 @@ def tetrahedralise(skin_file, bone_file, regions: list, landmarks: dict,
 def _gmsh_between(surfaces, h):
     """Tets between discrete surfaces [(points, tris) outer, (points, tris) inner]; the
     surface triangles are kept as they are. Returns points (outer first) and cells."""
-    from meshes._gmsh import import_gmsh
+    from meshes._gmsh import gmsh_session
 
-    gmsh = import_gmsh()
-
-    gmsh.initialize()
     try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        offset, loops, all_pts = 0, [], []
-        for k, (pts, tris) in enumerate(surfaces, start=1):
-            gmsh.model.addDiscreteEntity(2, k)
-            tags = np.arange(1, len(pts) + 1) + offset
-            gmsh.model.mesh.addNodes(2, k, tags, pts.ravel())
-            gmsh.model.mesh.addElementsByType(k, 2, [], (tris + 1 + offset).ravel())
-            loops.append(gmsh.model.geo.addSurfaceLoop([k]))
-            offset += len(pts)
-            all_pts.append(pts)
-        gmsh.model.geo.addVolume(loops)
-        gmsh.model.geo.synchronize()
-        if h:
-            gmsh.option.setNumber("Mesh.MeshSizeMax", h)
-        gmsh.model.mesh.generate(3)
-        ntags, x, _ = gmsh.model.mesh.getNodes()
-        _, conn = gmsh.model.mesh.getElementsByType(4)
+        with gmsh_session() as gmsh:
+            gmsh.option.setNumber("General.Terminal", 0)
+            offset, loops, all_pts = 0, [], []
+            for k, (pts, tris) in enumerate(surfaces, start=1):
+                gmsh.model.addDiscreteEntity(2, k)
+                tags = np.arange(1, len(pts) + 1) + offset
+                gmsh.model.mesh.addNodes(2, k, tags, pts.ravel())
+                gmsh.model.mesh.addElementsByType(k, 2, [], (tris + 1 + offset).ravel())
+                loops.append(gmsh.model.geo.addSurfaceLoop([k]))
+                offset += len(pts)
+                all_pts.append(pts)
+            gmsh.model.geo.addVolume(loops)
+            gmsh.model.geo.synchronize()
+            if h:
+                gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+            gmsh.model.mesh.generate(3)
+            ntags, x, _ = gmsh.model.mesh.getNodes()
+            _, conn = gmsh.model.mesh.getElementsByType(4)
     except Exception as e:
         raise MeshError(f"gmsh could not mesh the volume between the surfaces: {e}") from None
-    finally:
-        gmsh.finalize()
+
     index = np.zeros(int(ntags.max()) + 1, dtype=np.int64)
     index[ntags.astype(np.int64)] = np.arange(len(ntags))
     order = np.argsort(ntags)  # keep input surface vertex numbering first

@@ -200,13 +200,10 @@ def _landmark_rays(case: Case):
 
 def _gmsh_tissue(case: Case, h: float):
     """Mesh the soft tissue with gmsh; returns points (N, 3) and tets (M, 4)."""
-    from meshes._gmsh import import_gmsh
-
-    gmsh = import_gmsh()
+    from meshes._gmsh import gmsh_session
 
     bone, skin_extra, _, _ = _primitives(case)
-    gmsh.initialize(["-noenv"] if hasattr(gmsh, "initialize") else [])
-    try:
+    with gmsh_session(["-noenv"]) as gmsh:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", 1)  # deterministic
         occ = gmsh.model.occ
@@ -236,8 +233,6 @@ def _gmsh_tissue(case: Case, h: float):
         gmsh.model.mesh.generate(3)
         tags, x, _ = gmsh.model.mesh.getNodes()
         _, conn = gmsh.model.mesh.getElementsByType(4)
-    finally:
-        gmsh.finalize()
     index = np.zeros(int(tags.max()) + 1, dtype=np.int64)
     index[tags.astype(np.int64)] = np.arange(len(tags))
     cells = index[conn.astype(np.int64)].reshape(-1, 4)
