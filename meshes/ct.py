@@ -71,6 +71,10 @@ from meshes.volume import Volume, read_volume
 
 log = logging.getLogger(__name__)
 
+#: A CT scene's size unless asked: the coarsest whose every landmark's motion lies within
+#: 0.1 mm of ``fine``'s on both example CTs under a 5 mm advance (BENCHMARKS.md, "Accuracy:
+#: mesh convergence on the CTs": paper 0.04-0.09 mm, medium 0.26-0.28, coarse 0.33-0.92).
+DEFAULT_RESOLUTION = "paper"
 #: CGAL Mesh_3 criteria as multiples of the resolution's edge length h (`RESOLUTIONS`): cell
 #: circumradius and surface Delaunay-ball radius 1.3 h, which puts a CT face at the synthetic
 #: heads' vertex counts (headsq, paper: 40.2 k vertices; 0.6 h gave 27 k at coarse), facet
@@ -279,7 +283,7 @@ def read_scan(ct_path, spec: dict) -> tuple:
     return scan, intensity, metal
 
 
-def build(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = False):
+def build(ct_path, scene_file, resolution: str, labelmap: bool = False):
     """(Anatomy, info) from a CT (or label map) and a scene file; info has ``timings_s``
     per stage and ``min_quality``. No cache: see `ct_anatomy`."""
     if resolution not in RESOLUTIONS:
@@ -450,7 +454,7 @@ def _held_faces(lo, hi, free):
     return out
 
 
-def ct_anatomy(ct_path, scene_file, resolution: str = "coarse", labelmap: bool = False,
+def ct_anatomy(ct_path, scene_file, resolution: str = DEFAULT_RESOLUTION, labelmap: bool = False,
                landmarks=None):
     """(Anatomy, info): `build`, from the cache when the same input and options were meshed
     before (info then has ``cached: True`` and the original timings). ``landmarks``: a file

@@ -96,7 +96,7 @@ def plan_work(report: dict) -> float:
 #: BENCHMARKS.md's sections in the report's order (their markers) and the subcommand that
 #: writes each; ``bench.py all`` runs them all.
 SECTIONS = {"forward": "forward", "stress": "stress", "plan": "plan", "peers": "peers",
-            "accuracy-mesh": "accuracy", "accuracy-order": "accuracy",
+            "accuracy-mesh": "accuracy", "accuracy-ct": "accuracy", "accuracy-order": "accuracy",
             "accuracy-tolerance": "accuracy", "accuracy-tolerance-qn": "accuracy",
             "accuracy-prediction": "accuracy", "accuracy-gradient": "accuracy",
             "plausibility": "plausibility", "ct": "ct", "validation": "validation",

@@ -6,7 +6,7 @@
                                      [--all-up-to paper]
     python3 scripts/bench.py plan [--resolutions coarse,paper] [--ranks 1,2]
     python3 scripts/bench.py stress [--cases coarse:20,paper:10] [--timeout 300]
-    python3 scripts/bench.py accuracy [--parts mesh,tolerance,prediction,gradient]
+    python3 scripts/bench.py accuracy [--parts mesh,ct,tolerance,prediction,gradient]
     python3 scripts/bench.py plausibility [--resolutions coarse,paper] [--cases class1]
     python3 scripts/bench.py ct [--cts headsq,cranium] [--resolutions coarse,paper] [--ranks 2]
     python3 scripts/bench.py validation [--resolution paper] [--ranks 1,2]
@@ -97,7 +97,8 @@ def check_args(args) -> None:
              "resolution_mc": RESOLUTIONS, "solvers": PRESETS,
              "methods": METHODS,
              "methods_tol": METHODS, "occlusions": ("free", "final"), "cts": CTS,
-             "parts": ("mesh", "tolerance", "prediction", "gradient", "order")}
+             "resolutions_ct": RESOLUTIONS,
+             "parts": ("mesh", "ct", "tolerance", "prediction", "gradient", "order")}
     for name, allowed in lists.items():
         if getattr(args, name, None) is not None:
             among(name, allowed)
@@ -165,6 +166,9 @@ def main():
     a.add_argument("--resolutions", default="tiny,coarse,medium,paper,fine",
                    help="mesh part; the last is the reference")
     a.add_argument("--ranks-mesh", type=int, default=2)
+    a.add_argument("--cts", default="cranium", help="ct part: headsq, cranium")
+    a.add_argument("--resolutions-ct", default="coarse,medium,paper,fine",
+                   help="ct part; the last is the reference")
     a.add_argument("--resolutions-tol", default="medium,paper")
     a.add_argument("--methods-tol", default="newton,qn")
     a.add_argument("--resolutions-pred", default="coarse,medium")

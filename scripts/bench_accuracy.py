@@ -1,5 +1,6 @@
 """``bench.py accuracy``: run time against error. Each part writes a section of BENCHMARKS.md and
-a PNG under ``docs/``: ``mesh`` (tiny to fine, finest as reference), ``tolerance`` (solver
+a PNG under ``docs/``: ``mesh`` (tiny to fine, finest as reference), ``ct`` (the same on the
+example CTs, at the finest scene's landmarks), ``tolerance`` (solver
 tolerances against landmark error and time), ``prediction`` (first-order error against
 |dp|, plain and corrected), ``gradient`` (adjoint against finite differences), ``order``
 (P1 against P2).
@@ -94,6 +95,137 @@ def acc_mesh(args) -> None:
                  "mean err mm", "plan s", "planned p", "max abs(p − p*)",
                  "plan mean distance mm"], rows), "", f"![mesh convergence]({png})"]
     write_section("accuracy-mesh", "\n".join(body))
+
+
+def _at_points(scene: Path, rest: dict) -> dict:
+    """Rewrite ``scene``'s sidecar so that its landmarks are the skin points nearest to
+    ``rest`` ({name: (3,)} mm, another mesh's); returns {name: that distance, mm}."""
+    import meshio
+    import numpy as np
+
+    from meshes.external import closest_point_on_triangles
+
+    sidecar = Path(str(scene) + ".json")
+    spec = json.loads(sidecar.read_text())
+    mesh = meshio.read(scene)
+    i = next(k for k, c in enumerate(mesh.cells) if c.type == "triangle")
+    tri = mesh.cells[i].data[np.asarray(mesh.cell_data[spec["facet_data"]][i]) ==
+                             spec["roles"]["skin"]]
+    spec["landmarks"], off = {}, {}
+    for name, x in rest.items():
+        k, w, off[name] = closest_point_on_triangles(mesh.points, tri, np.asarray(x))
+        spec["landmarks"][name] = {"facet": tri[k].tolist(), "weights": w.tolist()}
+    sidecar.write_text(json.dumps(spec))
+    return off
+
+
+#: A landmark error (mm) no surgeon can see: the CT scene's default size is the coarsest
+#: within it (`meshes.ct.DEFAULT_RESOLUTION`).
+CLINICAL_MM = 0.1
+
+
+def _ct_choice(levels: list, worst: dict) -> str:
+    """The sentence that says which size the measurements choose, and whether
+    `meshes.ct.DEFAULT_RESOLUTION` is it."""
+    from meshes.ct import DEFAULT_RESOLUTION
+
+    ok = [r for r in levels[:-1] if r in worst and worst[r] < CLINICAL_MM]
+    if not ok:
+        return f"No size is within {CLINICAL_MM:g} mm of `{levels[-1]}` on every CT."
+    pick = ok[0]
+    verdict = "it is `ct_scene.py`'s default (`meshes.ct.DEFAULT_RESOLUTION`)" \
+        if pick == DEFAULT_RESOLUTION else \
+        f"**`ct_scene.py`'s default is `{DEFAULT_RESOLUTION}`: change it**"
+    return (f"The coarsest size whose every landmark lies within {CLINICAL_MM:g} mm of "
+            f"`{levels[-1]}`'s on every CT is `{pick}` ({worst[pick]:.3f} mm at worst): "
+            f"{verdict}. Coarser sizes are for a first look: " + ", ".join(
+                f"`{r}` errs up to {worst[r]:.2f} mm" for r in levels[:levels.index(pick)]
+                if r in worst) + ".")
+
+
+def acc_ct(args) -> None:
+    """Mesh convergence on the example CTs (`scripts.bench_ct.CTS`), as a user chains the
+    scripts: each resolution's scene by ``ct_scene.py`` (a fresh cache), a 5 mm advance of
+    its segment by ``simulate.py``, every scene's landmarks moved to the skin points nearest
+    to the finest scene's, so that every row measures the same anatomical points."""
+    import os
+
+    import numpy as np
+
+    from scripts.bench_ct import CTS, MOVE_MM
+
+    levels = args.resolutions_ct.split(",")
+    rows, curves, worst_of = [], {}, {}   # worst_of: resolution -> max error over the CTs
+    for name in args.cts.split(","):
+        ct_path, scene_file, param, *_ = CTS[name]
+        if not ct_path.exists():
+            rows.append([name, "", f"absent: {ct_path}"] + [""] * 6)
+            continue
+        with tempfile.TemporaryDirectory() as d:
+            os.environ["ORTHODIFF_CACHE"] = d   # the scripts' processes mesh anew
+            built, sims = {}, {}
+            for r in levels:
+                built[r] = simulate(r, "direct", 1, script="ct_scene.py", args=[
+                    "--ct", str(ct_path), "--osteotomies", str(scene_file), "--resolution", r,
+                    "--out", f"{d}/{r}"])
+                if "error" in built[r]:
+                    raise SystemExit(f"ct_scene.py at {r} failed: {built[r]['error']}")
+            sim = ["--p", f"{param}={MOVE_MM}", "--no-bands"]
+            ref = levels[-1]
+            sims[ref] = simulate(ref, "direct", args.ranks_mesh, args=[
+                "--mesh", f"{d}/{ref}/scene.vtu", *sim])
+            rest = sims[ref]["landmarks_rest"]
+            offs = {}
+            for r in levels[:-1]:
+                offs[r] = _at_points(Path(d) / r / "scene.vtu", rest)
+                sims[r] = simulate(r, "direct", args.ranks_mesh, args=[
+                    "--mesh", f"{d}/{r}/scene.vtu", *sim])
+        os.environ.pop("ORTHODIFF_CACHE")
+        for r, rep in sims.items():
+            if "error" in rep:
+                raise SystemExit(f"{name} at {r}: {rep['error']}")
+        disp = {r: landmark_motion(v) for r, v in sims.items()}
+        names = [n for n in rest if not n.startswith("T_")]
+        curve = []
+        for r in levels:
+            err = {n: float(np.linalg.norm(disp[r][n] - disp[ref][n])) for n in names}
+            worst = max(err, key=err.get)
+            t = sims[r]["timings_s"]
+            rows.append([name, r, sims[r]["n_vertices"], f"{built[r]['timings_s']['total']:.1f}",
+                         f"{t['solve']:.1f}", sims[r]["iterations"],
+                         "reference" if r == ref else f"{err[worst]:.3f} ({worst})",
+                         "" if r == ref else f"{np.mean(list(err.values())):.3f}",
+                         "" if r == ref else f"{max(offs[r][n] for n in names):.2f}"])
+            print(rows[-1], flush=True)
+            if r != ref:
+                curve.append((t["solve"], err[worst], r))
+                worst_of[r] = max(worst_of.get(r, 0.0), err[worst])
+        curves[name] = curve
+
+    def draw(plt):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for name, curve in curves.items():
+            ax.loglog([c[0] for c in curve], [c[1] for c in curve], "o-", label=name)
+            for x, y, r in curve:
+                ax.annotate(r, (x, y))
+        ax.axhline(0.1, ls="--", c="gray", label="0.1 mm")
+        ax.set(xlabel="forward solve wall time (s)", ylabel=f"max landmark error vs "
+               f"{levels[-1]} (mm)", title="forward on the CTs, 5 mm advance")
+        ax.legend()
+
+    png = plot("mesh_convergence_ct", draw)
+    body = header("Accuracy: mesh convergence on the CTs", args) + [
+        f"Each CT's scene by `ct_scene.py` at each resolution (scene s: a fresh cache), then "
+        f"`simulate.py --mesh` with a {MOVE_MM:g} mm advance of its segment (`bench_ct.CTS`: "
+        f"Cranium's LeFort I, headsq's jaws), the CT's own tissue model (sliding, tissues), "
+        f"{args.ranks_mesh} rank(s). Every coarser scene's landmarks are the skin points "
+        f"nearest to `{levels[-1]}`'s (skin offset: the farthest of those), so that each row "
+        f"measures the same anatomical points; the error is each landmark's motion against "
+        f"`{levels[-1]}`'s (the ear points left out).", "",
+        *table(["CT", "resolution", "vertices", "scene s", "forward s", "iterations",
+                "max landmark err mm", "mean err mm", "skin offset mm"], rows), "",
+        _ct_choice(levels, worst_of), "", f"![CT mesh convergence]({png})"]
+    write_section("accuracy-ct", "\n".join(body))
 
 
 TOLERANCE_CHOICE = {
@@ -349,8 +481,8 @@ def acc_order(args) -> None:
 
 
 def accuracy(args) -> None:
-    parts = {"mesh": acc_mesh, "tolerance": acc_tolerance, "prediction": acc_prediction,
-             "gradient": acc_gradient, "order": acc_order}
+    parts = {"mesh": acc_mesh, "ct": acc_ct, "tolerance": acc_tolerance,
+             "prediction": acc_prediction, "gradient": acc_gradient, "order": acc_order}
     for part in args.parts.split(","):
         if part not in parts:
             raise SystemExit(f"unknown part {part!r}; choose from {list(parts)}")

@@ -33,6 +33,7 @@ MESH_NAME = "scene.vtu"
 
 
 def parser():
+    from meshes.ct import DEFAULT_RESOLUTION
     from meshes.synthetic import RESOLUTIONS
     from scripts._common import base_parser
 
@@ -43,7 +44,9 @@ def parser():
                     help="write a starting osteotomy file from the CT's anatomy, and stop")
     ap.add_argument("--landmarks", help="JSON {name: [x, y, z]} or 3D Slicer .mrk.json")
     ap.add_argument("--labelmap", action="store_true", help="--ct is a label map")
-    ap.add_argument("--resolution", default="coarse", choices=list(RESOLUTIONS))
+    ap.add_argument("--resolution", default=DEFAULT_RESOLUTION, choices=list(RESOLUTIONS),
+                    help="mesh size (default %(default)s: within 0.1 mm of fine, "
+                    "BENCHMARKS.md)")
     ap.add_argument("--out", help=f"output folder ({MESH_NAME} + its sidecar)")
     ap.add_argument("--report", help="JSON report path")
     ap.add_argument("--picture", help="PNG of the scene: skin, segments, landmarks")

@@ -17,7 +17,9 @@ TIER = "scripts"
 #: CT scenes, meshed by CGAL (conftest.py skips them without pygalmesh).
 pytestmark = pytest.mark.cgal
 
-CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py")]
+#: ct_scene.py at coarse, the tests' size, unless a test gives its own --resolution (the last
+#: one given wins); a user's default is `meshes.ct.DEFAULT_RESOLUTION`.
+CT_SCENE = [sys.executable, str(ROOT / "scripts" / "ct_scene.py"), "--resolution", "coarse"]
 SIMULATE = [sys.executable, str(ROOT / "scripts" / "simulate.py")]
 PLAN = [sys.executable, str(ROOT / "scripts" / "plan.py")]
 VALIDATE = [sys.executable, str(ROOT / "scripts" / "validate.py")]
@@ -148,7 +150,7 @@ def test_tragion_at_the_front_rim_of_the_ear_canal(tmp_path):
     from meshes.landmarks import EAR_BIN_MM
 
     voxel = 3.0
-    got, _ = build(_small_ct(tmp_path, _ears, "ears.mha"), _scene_file(tmp_path))
+    got, _ = build(_small_ct(tmp_path, _ears, "ears.mha"), _scene_file(tmp_path), "coarse")
     t = got.landmark_positions()
     assert {"T_L", "T_R"} <= set(t), sorted(t)
     for name, side in (("T_L", 1.0), ("T_R", -1.0)):
@@ -156,7 +158,7 @@ def test_tragion_at_the_front_rim_of_the_ear_canal(tmp_path):
         assert side * x > 80, (name, t[name])   # on the pinna, not the head behind it
         assert -voxel / 2 <= y <= EAR_BIN_MM + voxel, (name, t[name])   # canal: y < 0
         assert abs(z - CANAL_Z) <= EAR_BIN_MM / 2 + voxel, (name, t[name])
-    plain, _ = build(_small_ct(tmp_path), _scene_file(tmp_path))
+    plain, _ = build(_small_ct(tmp_path), _scene_file(tmp_path), "coarse")
     assert not {"T_L", "T_R"} & set(plain.landmarks)
 
 
@@ -166,9 +168,9 @@ def test_ct_scene_is_deterministic_and_cached(tmp_path, cache):
     from meshes.ct import build, ct_anatomy
 
     ct, scene = _small_ct(tmp_path), _scene_file(tmp_path)
-    a, _ = build(ct, scene)
-    b, info_b = ct_anatomy(ct, scene)
-    c, info_c = ct_anatomy(ct, scene)
+    a, _ = build(ct, scene, "coarse")
+    b, info_b = ct_anatomy(ct, scene, "coarse")
+    c, info_c = ct_anatomy(ct, scene, "coarse")
     assert not info_b["cached"] and info_c["cached"]
     for x in (b, c):
         for key in ("points", "cells", "facets", "facet_tags"):
@@ -191,9 +193,9 @@ def test_label_map_input(tmp_path, cache):
                                                           np.where(a > -400, 1, 0)))
 
     labels = _small_ct(tmp_path, to_labels, name="labels.mha")
-    from_ct, _ = ct_anatomy(ct, _scene_file(tmp_path))
-    plain, _ = ct_anatomy(labels, _scene_file(tmp_path, labels={"tissue": [1, 3]}))
-    from_map, _ = ct_anatomy(labels, _scene_file(tmp_path, labels={"fat": 3}))
+    from_ct, _ = ct_anatomy(ct, _scene_file(tmp_path), "coarse")
+    plain, _ = ct_anatomy(labels, _scene_file(tmp_path, labels={"tissue": [1, 3]}), "coarse")
+    from_map, _ = ct_anatomy(labels, _scene_file(tmp_path, labels={"fat": 3}), "coarse")
     assert from_ct.material == from_map.material == "tissues" and plain.tissues is None
     assert plain.material == "homogeneous"
     share_ct, share_map = tissue_report(from_ct), tissue_report(from_map)
@@ -444,6 +446,6 @@ def test_planes_from_slicer_markups(tmp_path, cache):
         np.testing.assert_allclose(a.normal, b.normal, atol=1e-12)
         assert abs(a.distance(np.array([b.point]))[0]) < 1e-9, k
     ct = _small_ct(tmp_path)
-    from_markups, _ = ct_anatomy(ct, scene)
-    from_typed, _ = ct_anatomy(ct, typed)
+    from_markups, _ = ct_anatomy(ct, scene, "coarse")
+    from_typed, _ = ct_anatomy(ct, typed, "coarse")
     np.testing.assert_array_equal(from_markups.facet_tags, from_typed.facet_tags)

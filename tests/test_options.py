@@ -56,6 +56,9 @@ def test_bad_options_get_one_line_and_exit_2(tmp_path, script, args, match):
     (["stress", "--timeout", "abc"], "invalid float value"),
     (["stress", "--cases", "paper"], "--cases must be a finite number"),
     (["ct", "--cts", "foo"], "--cts: unknown 'foo'"),
+    (["accuracy", "--cts", "foo"], "--cts: unknown 'foo'"),
+    (["accuracy", "--resolutions-ct", "coarse,huge"], "--resolutions-ct: unknown 'huge'"),
+    (["accuracy", "--parts", "ct,mesh2"], "--parts: unknown 'mesh2'"),
     (["plausibility", "--cases", "class9"], "--cases: unknown 'class9'"),
 ])
 def test_bench_options_are_checked_before_any_work(args, match):
