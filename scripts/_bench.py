@@ -44,9 +44,11 @@ def machine() -> str:
 
 
 def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
-              args=None, timeout: float | None = None, python: str | None = None) -> dict:
+              args=None, timeout: float | None = None, python: str | None = None,
+              env: dict | None = None) -> dict:
     """A fresh ``script`` (simulate.py) process on n ranks, by ``python`` (default: this
-    interpreter; its own MPI's launcher): its report, or {"error": its last stderr line}."""
+    interpreter; its own MPI's launcher), ``env`` added to its environment: its report, or
+    {"error": its last stderr line}."""
     args = args or ["--case", "class3", "--resolution", res, "--solver", solver, "--p",
                     "mandible.advance_mm=5"]
     python = python or sys.executable
@@ -54,7 +56,7 @@ def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
         rep = Path(d) / "r.json"
         cmd = [python, str(ROOT / "scripts" / script), *args, "--report", str(rep), *extra]
         cmd = [*mpirun(n, python), *cmd]
-        env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+        env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", **(env or {}))
         try:
             r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
         except subprocess.TimeoutExpired:

@@ -148,8 +148,6 @@ def acc_ct(args) -> None:
     scripts: each resolution's scene by ``ct_scene.py`` (a fresh cache), a 5 mm advance of
     its segment by ``simulate.py``, every scene's landmarks moved to the skin points nearest
     to the finest scene's, so that every row measures the same anatomical points."""
-    import os
-
     import numpy as np
 
     from scripts.bench_ct import CTS, MOVE_MM
@@ -162,25 +160,24 @@ def acc_ct(args) -> None:
             rows.append([name, "", f"absent: {ct_path}"] + [""] * 6)
             continue
         with tempfile.TemporaryDirectory() as d:
-            os.environ["ORTHODIFF_CACHE"] = d   # the scripts' processes mesh anew
+            fresh = {"ORTHODIFF_CACHE": d}   # the scripts' processes mesh anew
             built, sims = {}, {}
             for r in levels:
-                built[r] = simulate(r, "direct", 1, script="ct_scene.py", args=[
+                built[r] = simulate(r, "direct", 1, script="ct_scene.py", env=fresh, args=[
                     "--ct", str(ct_path), "--osteotomies", str(scene_file), "--resolution", r,
                     "--out", f"{d}/{r}"])
                 if "error" in built[r]:
                     raise SystemExit(f"ct_scene.py at {r} failed: {built[r]['error']}")
             sim = ["--p", f"{param}={MOVE_MM}", "--no-bands"]
             ref = levels[-1]
-            sims[ref] = simulate(ref, "direct", args.ranks_mesh, args=[
+            sims[ref] = simulate(ref, "direct", args.ranks_mesh, env=fresh, args=[
                 "--mesh", f"{d}/{ref}/scene.vtu", *sim])
             rest = sims[ref]["landmarks_rest"]
             offs = {}
             for r in levels[:-1]:
                 offs[r] = _at_points(Path(d) / r / "scene.vtu", rest)
-                sims[r] = simulate(r, "direct", args.ranks_mesh, args=[
+                sims[r] = simulate(r, "direct", args.ranks_mesh, env=fresh, args=[
                     "--mesh", f"{d}/{r}/scene.vtu", *sim])
-        os.environ.pop("ORTHODIFF_CACHE")
         for r, rep in sims.items():
             if "error" in rep:
                 raise SystemExit(f"{name} at {r}: {rep['error']}")
