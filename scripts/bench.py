@@ -162,11 +162,12 @@ def main():
                     help="resolution:m pairs (m: mandible advance, mm)")
     st.add_argument("--timeout", type=float, default=300.0, help="seconds per case")
     a = sub.add_parser("accuracy", help="run time against error (plots in docs/)")
-    a.add_argument("--parts", default="mesh,tolerance,prediction,gradient,order")
+    a.add_argument("--parts", default="mesh,ct,tolerance,prediction,gradient,order")
     a.add_argument("--resolutions", default="tiny,coarse,medium,paper,fine",
                    help="mesh part; the last is the reference")
     a.add_argument("--ranks-mesh", type=int, default=2)
-    a.add_argument("--cts", default="cranium", help="ct part: headsq, cranium")
+    a.add_argument("--cts", default="cranium,headsq", help="ct part (an absent CT: a row "
+                   "that says so)")
     a.add_argument("--resolutions-ct", default="coarse,medium,paper,fine",
                    help="ct part; the last is the reference")
     a.add_argument("--resolutions-tol", default="medium,paper")

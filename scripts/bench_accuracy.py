@@ -129,6 +129,8 @@ def _ct_choice(levels: list, worst: dict) -> str:
     `meshes.ct.DEFAULT_RESOLUTION` is it."""
     from meshes.ct import DEFAULT_RESOLUTION
 
+    if not worst:
+        return "No CT was measured."
     ok = [r for r in levels[:-1] if r in worst and worst[r] < CLINICAL_MM]
     if not ok:
         return f"No size is within {CLINICAL_MM:g} mm of `{levels[-1]}` on every CT."
@@ -153,11 +155,12 @@ def acc_ct(args) -> None:
     from scripts.bench_ct import CTS, MOVE_MM
 
     levels = args.resolutions_ct.split(",")
-    rows, curves, worst_of = [], {}, {}   # worst_of: resolution -> max error over the CTs
+    rows, curves, worst_of, absent = [], {}, {}, []   # worst_of: resolution -> max error
     for name in args.cts.split(","):
         ct_path, scene_file, param, *_ = CTS[name]
         if not ct_path.exists():
             rows.append([name, "", f"absent: {ct_path}"] + [""] * 6)
+            absent.append(name)
             continue
         with tempfile.TemporaryDirectory() as d:
             fresh = {"ORTHODIFF_CACHE": d}   # the scripts' processes mesh anew
@@ -221,7 +224,8 @@ def acc_ct(args) -> None:
         f"`{levels[-1]}`'s (the ear points left out).", "",
         *table(["CT", "resolution", "vertices", "scene s", "forward s", "iterations",
                 "max landmark err mm", "mean err mm", "skin offset mm"], rows), "",
-        _ct_choice(levels, worst_of), "", f"![CT mesh convergence]({png})"]
+        _ct_choice(levels, worst_of) + (f" Not measured: {', '.join(absent)}." if absent
+                                         else ""), "", f"![CT mesh convergence]({png})"]
     write_section("accuracy-ct", "\n".join(body))
 
 
