@@ -98,25 +98,16 @@ def acc_mesh(args) -> None:
 
 
 def _at_points(scene: Path, rest: dict) -> dict:
-    """Rewrite ``scene``'s sidecar so that its landmarks are the skin points nearest to
-    ``rest`` ({name: (3,)} mm, another mesh's); returns {name: that distance, mm}."""
-    import meshio
+    """Rewrite the scene file ``scene`` (and its sidecar) with its landmarks at the skin points
+    nearest to ``rest`` ({name: (3,)} mm, another mesh's); returns {name: that distance, mm}."""
     import numpy as np
 
-    from meshes.external import closest_point_on_triangles
+    from meshes.external import attach_landmarks, load_tet_mesh, write_tet_mesh
 
-    sidecar = Path(str(scene) + ".json")
-    spec = json.loads(sidecar.read_text())
-    mesh = meshio.read(scene)
-    i = next(k for k, c in enumerate(mesh.cells) if c.type == "triangle")
-    tri = mesh.cells[i].data[np.asarray(mesh.cell_data[spec["facet_data"]][i]) ==
-                             spec["roles"]["skin"]]
-    spec["landmarks"], off = {}, {}
-    for name, x in rest.items():
-        k, w, off[name] = closest_point_on_triangles(mesh.points, tri, np.asarray(x))
-        spec["landmarks"][name] = {"facet": tri[k].tolist(), "weights": w.tolist()}
-    sidecar.write_text(json.dumps(spec))
-    return off
+    anatomy = attach_landmarks(load_tet_mesh(scene), rest, tol=np.inf)
+    write_tet_mesh(anatomy, scene)
+    at = anatomy.landmark_positions(list(rest))
+    return {n: float(np.linalg.norm(at[n] - np.asarray(x))) for n, x in rest.items()}
 
 
 #: A landmark error (mm) no surgeon can see: the CT scene's default size is the coarsest
