@@ -43,19 +43,16 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, {mem:.0f} GiB, {platform.platform()}"
 
 
-def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
-              args=None, timeout: float | None = None, python: str | None = None,
-              env: dict | None = None) -> dict:
-    """A fresh ``script`` (simulate.py) process on n ranks, by ``python`` (default: this
-    interpreter; its own MPI's launcher), ``env`` added to its environment: its report, or
-    {"error": its last stderr line}."""
-    args = args or ["--case", "class3", "--resolution", res, "--solver", solver, "--p",
-                    "mandible.advance_mm=5"]
+def run(script: str, args: list, n: int = 1, env: dict | None = None,
+        timeout: float | None = None, python: str | None = None) -> dict:
+    """A fresh ``scripts/<script>`` process with ``args`` on n ranks, by ``python`` (default:
+    this interpreter; its own MPI's launcher), one thread per rank, ``env`` added to this
+    environment: its ``--report``, or {"error": its last stderr line}."""
     python = python or sys.executable
     with tempfile.TemporaryDirectory() as d:
         rep = Path(d) / "r.json"
-        cmd = [python, str(ROOT / "scripts" / script), *args, "--report", str(rep), *extra]
-        cmd = [*mpirun(n, python), *cmd]
+        cmd = [*mpirun(n, python), python, str(ROOT / "scripts" / script), *args,
+               "--report", str(rep)]
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", **(env or {}))
         try:
             r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
@@ -64,6 +61,13 @@ def simulate(res: str, solver: str, n: int, extra=(), script="simulate.py",
         if r.returncode != 0:
             return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
         return json.loads(rep.read_text())
+
+
+def simulate(res: str, solver: str, n: int, extra=()) -> dict:
+    """`run` of simulate.py on n ranks: class3 at ``res`` with ``solver``, a 5 mm BSSO advance,
+    then ``extra``."""
+    return run("simulate.py", ["--case", "class3", "--resolution", res, "--solver", solver,
+                               "--p", "mandible.advance_mm=5", *extra], n)
 
 
 def worker(path, n: int, *args) -> dict:

@@ -22,7 +22,7 @@ from scripts._bench import (
     landmark_motion,
     plot,
     prediction_errors,
-    simulate,
+    run,
     table,
     write_section,
 )
@@ -33,7 +33,7 @@ def acc_mesh(args) -> None:
     import numpy as np
 
     levels = args.resolutions.split(",")
-    fwd = {r: simulate(r, "direct", args.ranks_mesh, args=[
+    fwd = {r: run("simulate.py", n=args.ranks_mesh, args=[
         "--case", "class3", "--resolution", r, "--p", *TREATMENT]) for r in levels}
     for r, rep in fwd.items():
         if "error" in rep:
@@ -50,7 +50,7 @@ def acc_mesh(args) -> None:
             tfile = Path(d) / "targets.json"
             tfile.write_text(json.dumps({n: (np.array(fwd[r]["landmarks_rest"][n])
                                              + disp[levels[-1]][n]).tolist() for n in goal}))
-            pl = simulate(r, "direct", args.ranks_mesh, script="plan.py", args=[
+            pl = run("plan.py", n=args.ranks_mesh, args=[
                 "--case", "class3", "--resolution", r, "--targets", str(tfile),
                 "--params-used", ",".join(used), "--tikhonov", "0", "--ftol", "1e-8"])
         if "error" in pl:
@@ -157,20 +157,20 @@ def acc_ct(args) -> None:
             fresh = {"ORTHODIFF_CACHE": d}   # the scripts' processes mesh anew
             built, sims = {}, {}
             for r in levels:
-                built[r] = simulate(r, "direct", 1, script="ct_scene.py", env=fresh, args=[
+                built[r] = run("ct_scene.py", n=1, env=fresh, args=[
                     "--ct", str(ct_path), "--osteotomies", str(scene_file), "--resolution", r,
                     "--out", f"{d}/{r}"])
                 if "error" in built[r]:
                     raise SystemExit(f"ct_scene.py at {r} failed: {built[r]['error']}")
             sim = ["--p", f"{param}={MOVE_MM}", "--no-bands"]
             ref = levels[-1]
-            sims[ref] = simulate(ref, "direct", args.ranks_mesh, env=fresh, args=[
+            sims[ref] = run("simulate.py", n=args.ranks_mesh, env=fresh, args=[
                 "--mesh", f"{d}/{ref}/scene.vtu", *sim])
             rest = sims[ref]["landmarks_rest"]
             offs = {}
             for r in levels[:-1]:
                 offs[r] = _at_points(Path(d) / r / "scene.vtu", rest)
-                sims[r] = simulate(r, "direct", args.ranks_mesh, env=fresh, args=[
+                sims[r] = run("simulate.py", n=args.ranks_mesh, env=fresh, args=[
                     "--mesh", f"{d}/{r}/scene.vtu", *sim])
         for r, rep in sims.items():
             if "error" in rep:
@@ -417,7 +417,7 @@ def acc_order(args) -> None:
             for r in levels.split(",")]
     reps = {}
     for d, r in runs:
-        reps[d, r] = simulate(r, "direct", args.ranks_mesh, args=[
+        reps[d, r] = run("simulate.py", n=args.ranks_mesh, args=[
             "--case", "class3", "--resolution", r, "--degree", str(d), "--p", *TREATMENT])
         if "error" in reps[d, r]:
             raise SystemExit(f"P{d} at {r} failed: {reps[d, r]['error']}")

@@ -20,12 +20,11 @@
 from __future__ import annotations
 
 import json
-import os
 import tempfile
 from pathlib import Path
 
-from scripts._bench import goal, header, table, write_section
-from scripts.bench_ct import CTS, _run
+from scripts._bench import goal, header, run, table, write_section
+from scripts.bench_ct import CTS
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The bands may cost this fraction of the forward solve (issue 46).
@@ -42,8 +41,8 @@ NOISES = (0.0, 0.02, 0.2)
 def _cranium(resolution: str, out: Path) -> str:
     """Cranium's scene at ``resolution`` (ct_scene.py, the user's cache): its mesh path."""
     ct, scene_file, *_ = CTS["cranium"]
-    rep = _run("ct_scene.py", ["--ct", str(ct), "--osteotomies", str(scene_file),
-                               "--resolution", resolution, "--out", str(out)], dict(os.environ))
+    rep = run("ct_scene.py", ["--ct", str(ct), "--osteotomies", str(scene_file),
+                              "--resolution", resolution, "--out", str(out)])
     if "error" in rep:
         raise RuntimeError(f"ct_scene.py: {rep['error']}")
     return str(out / "scene.vtu")
@@ -69,8 +68,7 @@ def bands(args) -> None:
     with tempfile.TemporaryDirectory() as d:
         paper = _cranium(args.resolution, Path(d) / "paper")
         for name, scene_args, param in _rows(args.resolution, paper):
-            rep = _run("simulate.py", [*scene_args, "--p", f"{param}={MOVE_MM}"],
-                       dict(os.environ))
+            rep = run("simulate.py", [*scene_args, "--p", f"{param}={MOVE_MM}"])
             t = rep["timings_s"]
             ratio = t["bands"] / t["solve"]
             worst = max(worst, ratio)
@@ -148,13 +146,13 @@ def _calibration(resolution: str, cranium_mesh: str, d: Path) -> list:
                           "tissues"], ["--p", "mandible.advance_mm=6", "maxilla.advance_mm=3"]),
               "Cranium": (["--mesh", cranium_mesh],
                           ["--p", "maxilla.advance_mm=5", "maxilla.vertical_mm=-1"])}
-    rows, env = [], dict(os.environ)
+    rows = []
     d.mkdir(parents=True, exist_ok=True)
     (d / "truth.json").write_text(json.dumps(TRUTH))
     for name, (scene, moves) in scenes.items():
         sim = d / f"{name}-sim"
-        _run("simulate.py", [*scene, *moves, "--material", str(d / "truth.json"), "--no-bands",
-                             "--out", str(sim)], env)
+        run("simulate.py", [*scene, *moves, "--material", str(d / "truth.json"), "--no-bands",
+                            "--out", str(sim)])
         skin = meshio.read(sim / "deformed.xdmf")
         tris = skin.cells[0].data[skin.cell_data["tag"][0] == 1]
         for noise in NOISES:
@@ -164,14 +162,14 @@ def _calibration(resolution: str, cranium_mesh: str, d: Path) -> list:
             M[:3, 3] = (2.0, -1.0, 1.5)
             scan = synthetic_scan(skin.points, tris, noise, M, seed=46)
             write_surface(case / "scan.ply", *scan)
-            v = _run("validate.py", [*scene, *moves, "--post", str(case / "scan.ply"),
-                                     "--out", str(case / "v")], env)
+            v = run("validate.py", [*scene, *moves, "--post", str(case / "scan.ply"),
+                                    "--out", str(case / "v")])
             if "error" in v:
                 rows.append([name, noise, v["error"], "", "", "", ""])
                 continue
             (case / "v" / "report.json").write_text(json.dumps(v))
-            c = _run("calibrate.py", ["--cases", str(case / "v" / "report.json"), "--noise-mm",
-                                      str(max(noise, 0.005)), "--out", str(case / "cal")], env)
+            c = run("calibrate.py", ["--cases", str(case / "v" / "report.json"), "--noise-mm",
+                                     str(max(noise, 0.005)), "--out", str(case / "cal")])
             f = c["fits"][0]
             r = f["ratios"]
             b, a = (f[k][next(iter(f[k]))]["face"]["rms"]
@@ -191,7 +189,7 @@ def _robust(resolution: str, cranium_mesh: str) -> list:
     for name, scene in (("class3-asym", ["--case", "class3-asym", "--resolution", resolution]),
                         ("Cranium", ["--mesh", cranium_mesh, "--goal", "midface-advance",
                                      "--params-used", "maxilla.advance_mm,maxilla.vertical_mm"])):
-        rep = _run("plan.py", [*scene, "--robust"], dict(os.environ))
+        rep = run("plan.py", [*scene, "--robust"])
         if "error" in rep:
             rows.append([name, rep["error"], "", "", "", "", "", ""])
             continue

@@ -11,9 +11,6 @@ paper scene: time and peak memory against Cranium's own voxels, same run.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -58,21 +55,6 @@ MODELS = [(c, m) for m in ("homogeneous", "tissues") for c in ("glued", "sliding
 STAGES = ("read", "frame", "segment", "mesh", "classify", "landmarks", "tissues")
 
 
-def _run(script: str, args: list, env: dict, ranks: int = 1) -> dict:
-    """``script`` with ``args`` on ``ranks`` MPI ranks: its report, or {"error": its last
-    line}."""
-    from scripts._launch import mpirun
-
-    with tempfile.TemporaryDirectory() as d:
-        rep = Path(d) / "r.json"
-        r = subprocess.run([*mpirun(ranks), sys.executable, str(ROOT / "scripts" / script),
-                            *args, "--report", str(rep)], capture_output=True, text=True,
-                           env=env)
-        if r.returncode != 0:
-            return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
-        return json.loads(rep.read_text())
-
-
 def _ratios(sim: dict, param: str) -> list:
     """[(landmark, published range, ratio)] of the rows of `bench_plausibility.RATIOS` whose
     treatment the CT's advance makes (jaws: the mandible's rows) and whose landmark it has."""
@@ -92,7 +74,7 @@ def _ratios(sim: dict, param: str) -> list:
 def ct(args) -> None:
     import numpy as np
 
-    from scripts._bench import goal, header, plan_work, plot, table, write_section
+    from scripts._bench import goal, header, plan_work, plot, run, table, write_section
 
     rows, ratio_rows, goals = [], [], []
     built = {}   # (CT, res) -> ct_scene.py's report
@@ -102,10 +84,9 @@ def ct(args) -> None:
     ct_ratios = []
     for res in args.resolutions.split(","):
         with tempfile.TemporaryDirectory() as cache:
-            env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                       ORTHODIFF_CACHE=cache)
-            sim = _run("simulate.py", ["--case", REFERENCE[0], "--resolution", res, "--p",
-                                       f"{REFERENCE[1]}={MOVE_MM}"], env, args.ranks)
+            sim = run("simulate.py", ["--case", REFERENCE[0], "--resolution", res, "--p",
+                                      f"{REFERENCE[1]}={MOVE_MM}"], args.ranks,
+                      {"ORTHODIFF_CACHE": cache})
         if "error" not in sim:
             reference[res] = (sim["n_vertices"], sim["timings_s"]["solve"])
     for name in args.cts.split(","):
@@ -115,10 +96,9 @@ def ct(args) -> None:
             continue
         for res in args.resolutions.split(","):
             with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
-                env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                           ORTHODIFF_CACHE=cache)
-                rep = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene),
-                                           "--resolution", res, "--out", out], env)
+                env = {"ORTHODIFF_CACHE": cache}
+                rep = run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene),
+                                          "--resolution", res, "--out", out], env=env)
                 if "error" in rep:
                     rows.append([name, res, rep["error"]] + [""] * (len(STAGES) + 7))
                     continue
@@ -144,12 +124,12 @@ def ct(args) -> None:
                                                for k in goal_lms}))
                 for contact, material in MODELS:
                     model = ["--contact", contact, "--material", material]
-                    sim = _run("simulate.py", ["--mesh", rep["mesh"], *model,
-                                               "--p", f"{param}={MOVE_MM}"], env, args.ranks)
-                    plan = _run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
-                                            "--landmarks", ",".join(goal_lms), *model,
-                                            "--params-used", plan_params],
-                                env, args.ranks) if goal_lms else {"error": "none"}
+                    sim = run("simulate.py", ["--mesh", rep["mesh"], *model,
+                                              "--p", f"{param}={MOVE_MM}"], args.ranks, env)
+                    plan = run("plan.py", ["--mesh", rep["mesh"], "--targets", str(targets),
+                                           "--landmarks", ",".join(goal_lms), *model,
+                                           "--params-used", plan_params],
+                               args.ranks, env) if goal_lms else {"error": "none"}
                     fwd = "failed" if "error" in sim else \
                         f"{sim['timings_s']['solve']:.1f} ({sim['iterations']})"
                     pl = plan.get("error", "")[:40] if "error" in plan else (
@@ -263,7 +243,7 @@ def _cbct(goals: list, own: dict | None = None) -> list:
     from scipy import ndimage
 
     from meshes.volume import Volume, read_volume, write_volume
-    from scripts._bench import goal
+    from scripts._bench import goal, run
 
     if not CRANIUM_CT.exists():
         return [["cranium", "", f"absent: {CRANIUM_CT}"] + [""] * (len(STAGES) + 4)]
@@ -283,11 +263,10 @@ def _cbct(goals: list, own: dict | None = None) -> list:
             else:
                 with tempfile.TemporaryDirectory() as cache, \
                         tempfile.TemporaryDirectory() as out:
-                    rep = _run("ct_scene.py", ["--ct", str(path), "--osteotomies",
-                                               str(CTS["cranium"][1]), "--resolution",
-                                               "paper", "--out", out],
-                               dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                                    ORTHODIFF_CACHE=cache))
+                    rep = run("ct_scene.py", ["--ct", str(path), "--osteotomies",
+                                              str(CTS["cranium"][1]), "--resolution",
+                                              "paper", "--out", out],
+                              env={"ORTHODIFF_CACHE": cache})
             if "error" in rep:
                 rows.append([name, "", rep["error"]] + [""] * (len(STAGES) + 4))
                 continue

@@ -16,6 +16,7 @@ from scripts._bench import (  # noqa: E402
     header,
     ranks_label,
     result,
+    run,
     series_plot,
     simulate,
     table,
@@ -193,7 +194,7 @@ def stress(args) -> None:
     for case in args.cases.split(","):
         res, mag = case.split(":")
         m = float(mag)
-        r = simulate(res, "direct", 1, timeout=args.timeout, args=[
+        r = run("simulate.py", n=1, timeout=args.timeout, args=[
             "--case", "class3-asym", "--resolution", res, "--params-used",
             ",".join(PLAN_PARAMS), "--p", f"mandible.advance_mm={m:g}",
             f"mandible.lateral_mm={0.3 * m:g}"])

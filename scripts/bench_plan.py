@@ -21,8 +21,8 @@ from scripts._bench import (
     plan_work,
     prediction_errors,
     ranks_label,
+    run,
     series_plot,
-    simulate,
     write_section,
 )
 
@@ -93,7 +93,7 @@ def _plan_over_forward(report: dict, res: str, occ: str, n: int):
     with tempfile.TemporaryDirectory() as d:
         params = Path(d) / "p.json"
         params.write_text(json.dumps(dict(zip(report["param_names"], report["params_optimal"]))))
-        sim = simulate(res, "direct", n, args=[
+        sim = run("simulate.py", n=n, args=[
             "--case", "class3-asym", "--resolution", res, "--occlusion", occ,
             "--params-used", ",".join(report["param_names"]), "--params", str(params)])
     if "error" in sim:
@@ -166,8 +166,8 @@ def plan(args) -> None:
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for res, occ in itertools.product(args.resolutions.split(","), args.occlusions.split(",")):
         for n in map(int, args.ranks.split(",")):
-            r = simulate(res, "direct", n, script="plan.py",
-                          args=["--case", "class3-asym", "--resolution", res, "--occlusion", occ])
+            r = run("plan.py", ["--case", "class3-asym", "--resolution", res, "--occlusion",
+                                 occ], n)
             if "error" in r:
                 lines.append(f"| {res} | {occ} | {n} | failed: {r['error'][:60]} | | | | | | | | "
                              "| |")

@@ -52,7 +52,7 @@ def head_motion(rep: dict, landmark: str, axis: int) -> float:
 
 def plausibility(args) -> None:
     from meshes.synthetic import CASES, GENERATOR_VERSION, Z_LEFORT
-    from scripts._bench import header, simulate, table, write_section
+    from scripts._bench import header, run, table, write_section
 
     cases = args.cases.split(",") if args.cases else sorted(CASES)
     models = [(c, m) for m in args.materials.split(",") for c in args.contacts.split(",")]
@@ -65,13 +65,13 @@ def plausibility(args) -> None:
             for contact, material in models:
                 cols.append(f"{case} {res} {contact} {material}")
                 model = ["--contact", contact, "--material", material]
-                r, times = ratios(lambda a: simulate(res, "direct", 1, args=a), case, res,
+                r, times = ratios(lambda a: run("simulate.py", n=1, args=a), case, res,
                                   model)
                 for i, (p, lm, axis, rng, _) in enumerate(RATIOS):
                     v = r[(p, lm, axis)]
                     ok = rng is None or rng[0] <= v <= rng[1]
                     rows[i].append(f"{v:.2f}" if ok else f"**{v:.2f}** ✗")
-                plan = simulate(res, "direct", 1, script="plan.py", args=[
+                plan = run("plan.py", n=1, args=[
                     "--case", case, "--resolution", res, *model])
                 fwd = [f"{times[p]:.1f}" for p in ("mandible.advance_mm", "maxilla.advance_mm")]
                 for key, v in zip(time_rows, fwd + [

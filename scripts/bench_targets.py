@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts._bench import ROOT, header, simulate, table, write_section
+from scripts._bench import ROOT, header, run, table, write_section
 
 TARGETS = {"Debian": ROOT / ".venv" / "bin" / "python",
            "PyPI": ROOT / ".venv-pypi" / "bin" / "python"}
@@ -65,9 +65,9 @@ def targets(args) -> None:
 def _run(what: str, scenes: dict, solver: str, n: int, python) -> dict:
     """One forward (class3, 5 mm advance) or plan (class3-asym's goal) report."""
     if what == "forward":
-        return simulate("", solver, n, python=str(python), args=[
+        return run("simulate.py", n=n, python=str(python), args=[
             "--mesh", str(scenes["class3"]), "--solver", solver, "--p", "mandible.advance_mm=5"])
-    return simulate("", solver, n, script="plan.py", python=str(python), args=[
+    return run("plan.py", n=n, python=str(python), args=[
         "--mesh", str(scenes["class3-asym"]), "--goal", "class3-asym", "--solver", solver])
 
 

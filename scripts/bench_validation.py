@@ -14,14 +14,12 @@ of the tests (`tests/hostile_postop.py`) with ``--measure-bone``.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from scripts._launch import mpirun
-from scripts.bench_ct import CTS, _run
+from scripts._bench import run
+from scripts.bench_ct import CTS
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The truth's movements (a LeFort I advance with some impaction) and the outcome's
@@ -107,15 +105,11 @@ def _hostile(mesh: str, ct_path, scene_file, out: Path, env: dict) -> list:
     for name, kw in VARIANTS.items():
         post = out / "hostile.mha"
         write_volume(hostile_postop(pre, spec, motions, M, **kw), post)
-        rep = out / "hostile.json"
-        r = subprocess.run([sys.executable, str(ROOT / "scripts" / "validate.py"), "--mesh",
-                            mesh, "--post", str(post), "--pre-ct", str(ct_path),
-                            "--measure-bone", "--out", str(out / "hostile"), "--report",
-                            str(rep)], capture_output=True, text=True, env=env)
-        if r.returncode != 0:
-            rows.append([name, "failed: " + (r.stderr.strip().splitlines() or [""])[-1]])
+        v = run("validate.py", ["--mesh", mesh, "--post", str(post), "--pre-ct", str(ct_path),
+                                "--measure-bone", "--out", str(out / "hostile")], env=env)
+        if "error" in v:
+            rows.append([name, "failed: " + v["error"]])
             continue
-        v = json.loads(rep.read_text())
         segs = v["segments"]
         errors = {k: rms_mm(np.array(s["transform"]), motions[k],
                             bones[k].points[np.unique(bones[k].tris)])
@@ -138,27 +132,22 @@ def validation(args) -> None:
                  "ct": ["--pre-ct", str(ct_path), "--measure-bone"]}
     with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as out:
         out = Path(out)
-        env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
-                   ORTHODIFF_CACHE=cache)
-        built = _run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene_file),
-                                     "--resolution", args.resolution, "--out",
-                                     str(out / "scene")], env)
+        env = {"ORTHODIFF_CACHE": cache}
+        built = run("ct_scene.py", ["--ct", str(ct_path), "--osteotomies", str(scene_file),
+                                    "--resolution", args.resolution, "--out",
+                                    str(out / "scene")], env=env)
         if "error" in built:
             raise SystemExit(f"ct_scene.py failed: {built['error']}")
         mesh = built["mesh"]
         truth = _truth(mesh, ct_path, scene_file, out)
         for kind, post in (("scan", out / "post.ply"), ("ct", out / "post.mha")):
             for n in (int(k) for k in args.ranks.split(",")):
-                rep = out / f"{kind}{n}.json"
-                r = subprocess.run(mpirun(n) + [
-                    sys.executable, str(ROOT / "scripts" / "validate.py"), "--mesh", mesh,
-                    "--post", str(post), "--out", str(out / f"{kind}{n}"), "--report",
-                    str(rep), *movements[kind]], capture_output=True, text=True, env=env)
-                if r.returncode != 0:
-                    rows[kind].append([n, "failed: " + (r.stderr.strip().splitlines()
-                                                        or [""])[-1]])
+                rep = run("validate.py", ["--mesh", mesh, "--post", str(post), "--out",
+                                          str(out / f"{kind}{n}"), *movements[kind]], n, env)
+                if "error" in rep:
+                    rows[kind].append([n, "failed: " + rep["error"]])
                     continue
-                rows[kind].append(_row(kind, n, json.loads(rep.read_text()), truth))
+                rows[kind].append(_row(kind, n, rep, truth))
                 print(kind, rows[kind][-1], flush=True)
         hostile = _hostile(mesh, ct_path, scene_file, out, env)
     body = header("Validation against the outcome (Cranium, synthetic post-op scan and CT)",
