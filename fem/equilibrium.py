@@ -17,9 +17,9 @@ The default method is quasi-Newton (SNESQN, L-BFGS) whose initial inverse Hessia
 factorisation of K: one factorisation serves many solves. Newton (SNES newtonls, a
 factorisation per step) takes over when it fails.
 
-Robustness: Newton's line search backtracks on the energy, which is +inf where any
-tetrahedron has det F <= 0; quasi-Newton's steps to the critical point along its direction,
-halving a trial that inverts an element (a NaN residual). No NaN is ever taken. A step
+Robustness: quasi-Newton's line search steps to the energy's critical point along its
+direction, halving a trial that inverts an element (a NaN residual); Newton's halves its step
+until it inverts no element, then backtracks on the residual's norm. No NaN is ever taken. A step
 whose first-order start inverts an element starts where `fem.path.PathFollower.follow` gets
 along the path (secant continuation relaxed on the kept factorisation). A failed
 quasi-Newton solve first bisects the step in p (`SolverPolicy.qn_bisections`), then hands over to
@@ -168,11 +168,11 @@ class Equilibrium:
             solved_xtol=0.0 if domain.comm.allreduce(moved, op=MPI.MAX) == 0 else np.inf)
         # SNES callbacks, late-bound to the parts built below
         self.snes_set = SnesSet(domain.comm, forms.A, forms.b, SnesCallbacks(
-            residual=lambda x, b: forms.residual(x, b), energy=lambda x: forms.energy(x),
+            residual=lambda x, b: forms.residual(x, b),
             jacobian=lambda snes, x, A: self.refactorisation.jacobian(snes, x, A),
             converged=lambda snes, it, norms: self.stop(snes, it, norms),
-            precheck=lambda x, y: self.stop.precheck(x, y),
-            line_search=lambda x, y: self.solver.critical_step(x, y)),
+            line_search=lambda x, y: self.solver.critical_step(x, y),
+            guard=lambda x, y: self.solver.newton_guard(x, y)),
             opts.prefix, opts.solver, opts.options,
             METHOD_DEFAULTS["newton"]["max_it"] if opts.method != "newton" else opts.max_it)
         self.kept = KeptFactor(self.snes_set.ksp, domain.comm, self.snes_set.settings,

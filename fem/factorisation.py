@@ -206,17 +206,16 @@ class KeptFactor:
 @dataclasses.dataclass(frozen=True)
 class SnesCallbacks:
     """What every SNES calls, as functions of their arguments: ``residual(x, out)``,
-    ``energy(x)`` (the line search's objective), ``jacobian(snes, x, A)`` (assemble and
-    factorise, or keep the factor), ``converged(snes, it, norms)`` (the stopping test),
-    ``precheck(x, y)`` (Newton's line-search pre-check) and ``line_search(x, y)`` (quasi-Newton's
-    critical-point search, run as its pre-check; scales y)."""
+    ``jacobian(snes, x, A)`` (assemble and factorise, or keep the factor),
+    ``converged(snes, it, norms)`` (the stopping test), ``line_search(x, y)`` (quasi-Newton's
+    critical-point search, run as the pre-check of SNES's "basic" line search; scales y) and
+    ``guard(x, y)`` (Newton's pre-check: y halved until x - y inverts no element)."""
 
     residual: Callable
-    energy: Callable
     jacobian: Callable
     converged: Callable
-    precheck: Callable
     line_search: Callable
+    guard: Callable
 
 
 class SnesSet:
@@ -233,7 +232,9 @@ class SnesSet:
             newton_max_it: Newton's iteration cap.
     """
 
-    #: Newton's backtracking line search on the energy, and one failed linear solve per step.
+    #: Newton's line search: backtracking on the residual's norm (no objective is set: on the
+    #: energy, `bt` refused steps whose energy change was its roundoff, docs/decisions.md),
+    #: after `SnesCallbacks.guard`; one failed linear solve per step.
     SEARCH = {"snes_linesearch_type": "bt", "snes_linesearch_max_it": 40,
               "snes_max_linear_solve_fail": 1}
 
@@ -264,13 +265,12 @@ class SnesSet:
             opts[prefix + k] = settings[k]
         snes.setFunction(lambda s, x, b: cb.residual(x, b), self.b)
         snes.setJacobian(lambda s, x, A, P: cb.jacobian(s, x, A), self.A)
-        snes.setObjective(lambda s, x: cb.energy(x))
         snes.setConvergenceTest(lambda s, it, norms: cb.converged(s, it, norms))
         snes.setTolerances(max_it=max_it)
         snes.setFromOptions()
         snes.setLineSearchPreCheck(
             (lambda x, y, *a: cb.line_search(x, y)) if snes.getType() == "qn"
-            else lambda x, y, *a: cb.precheck(x, y))
+            else lambda x, y, *a: cb.guard(x, y))
         if ksp is not None:   # after setFromOptions: re-reading options would reset MUMPS
             snes.setKSP(ksp)
         for k in mine:

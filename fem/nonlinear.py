@@ -68,6 +68,17 @@ class NonlinearSolver:
         y.scale(lam)
         return True
 
+    def newton_guard(self, x, y, *args):
+        """Newton's line-search pre-check: y halved until x - y inverts no element (at most
+        `SolverPolicy.max_halvings` times); PETSc's backtracking on the residual's norm then
+        takes that step or shortens it. A full step stays full, so Newton stays quadratic."""
+        self.stop.precheck(x, y)
+        for _ in range(self.state.policy.max_halvings):
+            if self.forms.sound(self._trial_point(x, y, 1.0)):
+                break
+            y.scale(0.5)
+        return True
+
     def _trial_point(self, x, y, lam: float) -> PETSc.Vec:
         """x - λy in the line search's work vector."""
         x.copy(self._w)
