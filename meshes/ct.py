@@ -11,7 +11,8 @@ Stages, each with the well-kept library for it:
 4. **classify** each boundary facet by the label just outside it: skin (air), bone, crop
    (held: `RIM`) or free (air inside the head, a free crop face: no tag, traction-free); bone
    facets by the osteotomy planes (`meshes.osteotomy`), and the segments' teeth and
-   vestibule by HU (`meshes.teeth`);
+   vestibule by HU (`meshes.teeth`); then the flaps the cut's free band leaves hanging go
+   (`drop_flaps`);
 5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), built in
    the head frame (`meshes.frame`: given by the scene file's ``frame``, or estimated on the
    whole CT before the crop), or from a file;
@@ -203,25 +204,71 @@ def _mesh(labels: np.ndarray, volume: Volume, h: float):
     if len(cells) == 0:
         raise MeshError(f"CGAL produced no tetrahedra from the tissue of {volume.name}")
     # CGAL leaves a few clusters hanging at an edge or a vertex where the tissue is thin
-    # (Cranium coarse: 27 of them, 92 of 18 592 cells): keep the facet-connected bulk
-    part = facet_components(cells)
-    cells = cells[part == np.bincount(part).argmax()]
-    points, cells = split_pinched_vertices(np.asarray(m.points, float), cells)
+    # (Cranium coarse: 27 of them, 92 of 18 592 cells)
+    cells, source = _bulk(cells)
+    points = np.asarray(m.points, float)[source]
     # voxel i of the labels (padded by one voxel of crop) sits at i * spacing in CGAL's frame
     return points + volume.origin - volume.spacing * (1 + pad), cells
 
 
-def split_pinched_vertices(points: np.ndarray, cells: np.ndarray):
-    """(points, cells) with every vertex whose cells form several fans (groups joined through
-    facets at that vertex) split into one vertex per fan, and unused points dropped. CGAL
-    pinches thin tissue at single vertices (Cranium coarse: 220 of them), and Debian's dolfinx
-    0.5.2 then deadlocks in ``create_connectivity(2, 0)`` on 2 ranks (its shared-facet
-    ghosting); a split vertex is two nodes at one place, which the mechanics allows."""
+def _bulk(cells: np.ndarray):
+    """(cells, source) of the facet-connected bulk of ``cells``, pinched vertices split
+    (`split_pinched_vertices`)."""
+    part = facet_components(cells)
+    return split_pinched_vertices(cells[part == np.bincount(part).argmax()])
+
+
+def drop_flaps(points: np.ndarray, cells: np.ndarray, facets: np.ndarray, tags: np.ndarray):
+    """(points, cells, facets, tags) without the flaps the cut's free band leaves hanging:
+    cells whose four vertices all lie on free inner surfaces (tag 0: air inside the head, a
+    free crop face; `FREE_BONE`: the band) and on no other boundary facet, at least one on
+    the band; e.g. the sinus lining over the band, one cell thick between the sinus's air
+    and the freed bone. Then the facet-connected bulk (`_bulk`). ``facets``, ``tags``: the
+    whole boundary (B, 3), (B,); the new one keeps each facet's tag, and a facet the flaps
+    uncovered is free (0).
+
+    A flap is nearly a mechanism. Cranium at fine, 5 mm LeFort I advance, 2 ranks: quasi-Newton's
+    first search directions were 300-860 mm there, K indefinite at its iterates, 141
+    iterations and 15 factorisations (356 s); without its 2519 flap cells (of 772 108), 26
+    and 1 (32 s), the landmarks within 0.01 mm. Dropping the flaps away from the band too
+    (2.6x as many) made it 11 iterations, but moved Sn's motion 0.06 mm at paper, and a quarter
+    voxel's shift of the scan then moved it 0.21 mm (issue 47's bound: 0.2; docs/decisions.md).
+    """
+    def on(facet_mask):   # (N,) vertices on these boundary facets
+        v = np.zeros(len(points), dtype=bool)
+        v[facets[facet_mask]] = True
+        return v
+
+    inner = np.isin(tags, (0, FREE_BONE))
+    flap = on(inner)[cells].all(axis=1) & ~on(~inner)[cells].any(axis=1) & \
+        on(tags == FREE_BONE)[cells].any(axis=1)
+    if not flap.any():
+        return points, cells, facets, tags
+    n = len(points)
+    cells, source = _bulk(cells[~flap])
+    points = points[source]
+    new, _ = _boundary(cells, points)
+    old = _facet_keys(np.sort(facets, axis=1), n)   # each new facet by its old vertices
+    order = np.argsort(old)
+    keys = _facet_keys(np.sort(source[new], axis=1), n)
+    at = np.minimum(np.searchsorted(old[order], keys), len(order) - 1)
+    kept = old[order][at] == keys
+    return points, cells, new, np.where(kept, tags[order][at], 0).astype(tags.dtype)
+
+
+def split_pinched_vertices(cells: np.ndarray):
+    """(cells, source): every vertex whose cells form several fans (groups joined through
+    facets at that vertex) split into one vertex per fan, and unused vertices dropped;
+    ``source`` (N',) is each new vertex's old index (its point: ``points[source]``). CGAL
+    pinches thin tissue at single vertices (Cranium coarse: 220 of them), and so does
+    `drop_flaps`; Debian's dolfinx 0.5.2 then deadlocks in ``create_connectivity(2, 0)`` on 2
+    ranks (its shared-facet ghosting); a split vertex is two nodes at one place, which the
+    mechanics allows."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
     faces = cells[:, TET_FACES].reshape(-1, 3)
-    keys = _facet_keys(np.sort(faces, axis=1), len(points))
+    keys = _facet_keys(np.sort(faces, axis=1), int(cells.max()) + 1)
     order = np.argsort(keys, kind="stable")
     pair = np.flatnonzero(keys[order][1:] == keys[order][:-1])
     r1, r2 = order[pair], order[pair + 1]           # the two cells' rows of each inner facet
@@ -236,7 +283,7 @@ def split_pinched_vertices(points: np.ndarray, cells: np.ndarray):
     new, first = np.unique(fan, return_index=True)
     remap = np.empty(new.max() + 1, dtype=np.int64)
     remap[new] = np.arange(len(new))
-    return points[cells.ravel()[first]], remap[fan].reshape(cells.shape)
+    return remap[fan].reshape(cells.shape), cells.ravel()[first]
 
 
 def _boundary(cells: np.ndarray, points: np.ndarray):
@@ -351,6 +398,7 @@ def build(ct_path, scene_file, resolution: str, labelmap: bool = False):
         teeth[moving] = ct_teeth(volume.at, mid[moving], normals[moving],
                                  float(volume.spacing.min()), cuts.occlusal)
         tags = tag_teeth(points, facets, tags, segments, teeth)
+    points, cells, facets, tags = drop_flaps(points, cells, facets, tags)
     for name, tag in segments.items():
         if not np.any(tags == tag):
             raise MeshError(f"segment {name!r} has no facets: the osteotomy planes leave no "

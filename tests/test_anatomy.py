@@ -169,3 +169,66 @@ def test_tetrahedralise_surfaces(tmp_path):
     vol = np.abs(signed_volumes(a.points, a.cells)).sum()
     assert 0.85 * 4 / 3 * np.pi * (50 ** 3 - 30 ** 3) < vol < 4 / 3 * np.pi * (50 ** 3 - 30 ** 3)
     assert np.linalg.norm(a.landmark_positions()["Pg"] - [0, 0, -50]) < 0.5
+
+
+def _kuhn_box(cubes) -> tuple:
+    """(points, cells): unit cubes at the integer corners ``cubes`` [(i, j, k)], six tets each
+    (Kuhn's), sharing their vertices."""
+    import itertools
+
+    index, cells = {}, []
+    for c in cubes:
+        for perm in itertools.permutations(range(3)):
+            path, corner = [tuple(c)], list(c)
+            for axis in perm:
+                corner[axis] += 1
+                path.append(tuple(corner))
+            cells.append([index.setdefault(v, len(index)) for v in path])
+    points = np.zeros((len(index), 3))
+    for v, i in index.items():
+        points[i] = v
+    return points, np.array(cells)
+
+
+@pytest.mark.unit
+def test_flaps_one_cell_thick_between_free_surfaces_are_dropped():
+    """A block held below (FIXED) with skin on top, and a sheet one cube thick sticking out of
+    its side between a free surface and the cut's free band: the sheet goes, every cell that
+    touches the held bone or the skin stays, the tags follow their facets, and the result
+    has no pinched vertex; with the sheet on held bone instead, nothing changes."""
+    from meshes.anatomy import FREE_BONE, boundary_facets
+    from meshes.ct import _boundary, drop_flaps, split_pinched_vertices
+
+    block = [(i, j, k) for i in range(4) for j in range(4) for k in range(3)]
+    sheet = [(i, j, 1) for i in range(4, 7) for j in range(4)]
+
+    def tagged(points, cells):
+        facets, _ = _boundary(cells, points)
+        z = points[facets][:, :, 2]
+        tags = np.zeros(len(facets), dtype=np.int32)
+        tags[(z == 0).all(axis=1)] = FIXED
+        tags[(z == 3).all(axis=1)] = SKIN
+        tags[(z == 1).all(axis=1) & (points[facets][:, :, 0] >= 4).all(axis=1)] = FREE_BONE
+        return facets, tags
+
+    points, cells = _kuhn_box(block + sheet)
+    facets, tags = tagged(points, cells)
+    assert (points[cells].mean(axis=1)[:, 0] > 4).sum() == 6 * len(sheet)
+    p2, c2, f2, t2 = drop_flaps(points, cells, facets, tags)
+    assert (p2[c2].mean(axis=1)[:, 0] > 4).sum() == 0
+    def at(p, c):   # each cell as the set of its corners' positions
+        return {frozenset(map(tuple, x)) for x in p[c]}
+
+    touching = points[facets[np.isin(tags, (FIXED, SKIN))]].reshape(-1, 3)
+    touching = {tuple(x) for x in touching}
+    held = [c for c in at(points, cells) if touching & c]
+    assert len(held) == 6 * 32 and set(held) <= at(p2, c2)   # the bottom and top layers
+    for t in (FIXED, SKIN):
+        assert (t2 == t).sum() == (tags == t).sum() == 32
+    assert {tuple(f) for f in np.sort(f2, axis=1)} == {tuple(f) for f in boundary_facets(c2)}
+    assert len(split_pinched_vertices(c2)[1]) == len(p2)
+    points, cells = _kuhn_box(block + sheet)   # the sheet on held bone: no flap
+    facets, tags = tagged(points, cells)
+    tags[tags == FREE_BONE] = FIXED
+    out = drop_flaps(points, cells, facets, tags)
+    assert all(x is y for x, y in zip(out, (points, cells, facets, tags)))
