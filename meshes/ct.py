@@ -221,39 +221,43 @@ def _bulk(cells: np.ndarray):
 def drop_flaps(points: np.ndarray, cells: np.ndarray, facets: np.ndarray, tags: np.ndarray):
     """(points, cells, facets, tags) without the flaps the cut's free band leaves hanging:
     cells whose four vertices all lie on free inner surfaces (tag 0: air inside the head, a
-    free crop face; `FREE_BONE`: the band) and on no other boundary facet, at least one on
-    the band; e.g. the sinus lining over the band, one cell thick between the sinus's air
-    and the freed bone. Then the facet-connected bulk (`_bulk`). ``facets``, ``tags``: the
-    whole boundary (B, 3), (B,); the new one keeps each facet's tag, and a facet the flaps
-    uncovered is free (0).
+    free crop face; `FREE_BONE`: the band), at least one on the band, none on the skin, and
+    at most two also on held bone (a held vertex or edge is a hinge, not a hold); e.g. the
+    sinus lining over the band, one cell thick between the sinus's air and the freed bone.
+    Then the facet-connected bulk (`_bulk`), and again until none is left. ``facets``,
+    ``tags``: the whole boundary (B, 3), (B,); the new one keeps each facet's tag, and a
+    facet the flaps uncovered is free (0).
 
-    A flap is nearly a mechanism. Cranium at fine, 5 mm LeFort I advance, 2 ranks: quasi-Newton's
-    first search directions were 300-860 mm there, K indefinite at its iterates, 141
-    iterations and 15 factorisations (356 s); without its 2519 flap cells (of 772 108), 26
-    and 1 (32 s), the landmarks within 0.01 mm. Dropping the flaps away from the band too
-    (2.6x as many) made it 11 iterations, but moved Sn's motion 0.06 mm at paper, and a quarter
-    voxel's shift of the scan then moved it 0.21 mm (issue 47's bound: 0.2; docs/decisions.md).
+    A flap is nearly a mechanism. Cranium, 5 mm LeFort I advance, 2 ranks: at fine,
+    quasi-Newton's first search directions were 300-860 mm there, K indefinite at its
+    iterates, 141 iterations and 15 factorisations (356 s); without its flaps (3 % of the
+    cells), 26 and 1 (31 s); at medium and paper, 14 and 22 iterations became 9; the
+    landmarks' motion within 0.015 mm. Not kept (docs/decisions.md): flaps away from the band
+    too (Sn 0.06 mm off at paper), or only cells touching no held bone at all (a hinged
+    remnant then took medium to 60 iterations).
     """
-    def on(facet_mask):   # (N,) vertices on these boundary facets
-        v = np.zeros(len(points), dtype=bool)
-        v[facets[facet_mask]] = True
-        return v
+    while True:   # dropping flaps may uncover more (Cranium fine: 2 rounds)
+        def on(facet_mask):   # (N,) vertices on these boundary facets
+            v = np.zeros(len(points), dtype=bool)
+            v[facets[facet_mask]] = True
+            return v
 
-    inner = np.isin(tags, (0, FREE_BONE))
-    flap = on(inner)[cells].all(axis=1) & ~on(~inner)[cells].any(axis=1) & \
-        on(tags == FREE_BONE)[cells].any(axis=1)
-    if not flap.any():
-        return points, cells, facets, tags
-    n = len(points)
-    cells, source = _bulk(cells[~flap])
-    points = points[source]
-    new, _ = _boundary(cells, points)
-    old = _facet_keys(np.sort(facets, axis=1), n)   # each new facet by its old vertices
-    order = np.argsort(old)
-    keys = _facet_keys(np.sort(source[new], axis=1), n)
-    at = np.minimum(np.searchsorted(old[order], keys), len(order) - 1)
-    kept = old[order][at] == keys
-    return points, cells, new, np.where(kept, tags[order][at], 0).astype(tags.dtype)
+        inner = np.isin(tags, (0, FREE_BONE))
+        held = on(~np.isin(tags, (0, FREE_BONE, SKIN)))[cells].sum(axis=1)
+        flap = on(inner)[cells].all(axis=1) & ~on(tags == SKIN)[cells].any(axis=1) & \
+            (held < 3) & on(tags == FREE_BONE)[cells].any(axis=1)
+        if not flap.any():
+            return points, cells, facets, tags
+        n = len(points)
+        cells, source = _bulk(cells[~flap])
+        points = points[source]
+        new, _ = _boundary(cells, points)
+        old = _facet_keys(np.sort(facets, axis=1), n)   # each new facet by its old vertices
+        order = np.argsort(old)
+        keys = _facet_keys(np.sort(source[new], axis=1), n)
+        at = np.minimum(np.searchsorted(old[order], keys), len(order) - 1)
+        kept = old[order][at] == keys
+        facets, tags = new, np.where(kept, tags[order][at], 0).astype(tags.dtype)
 
 
 def split_pinched_vertices(cells: np.ndarray):
