@@ -236,12 +236,12 @@ def drop_flaps(points: np.ndarray, cells: np.ndarray, facets: np.ndarray, tags: 
     too (Sn 0.06 mm off at paper), or only cells touching no held bone at all (a hinged
     remnant then took medium to 60 iterations).
     """
-    while True:   # dropping flaps may uncover more (Cranium fine: 2 rounds)
-        def on(facet_mask):   # (N,) vertices on these boundary facets
-            v = np.zeros(len(points), dtype=bool)
-            v[facets[facet_mask]] = True
-            return v
+    def on(facet_mask):   # (N,) vertices on these boundary facets (the current ones)
+        v = np.zeros(len(points), dtype=bool)
+        v[facets[facet_mask]] = True
+        return v
 
+    while True:   # dropping flaps may uncover more (Cranium fine: 2 rounds)
         inner = np.isin(tags, (0, FREE_BONE))
         held = on(~np.isin(tags, (0, FREE_BONE, SKIN)))[cells].sum(axis=1)
         flap = on(inner)[cells].all(axis=1) & ~on(tags == SKIN)[cells].any(axis=1) & \
