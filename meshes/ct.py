@@ -230,8 +230,8 @@ def drop_flaps(points: np.ndarray, cells: np.ndarray, facets: np.ndarray, tags: 
 
     A flap is nearly a mechanism. Cranium, 5 mm LeFort I advance, 2 ranks: at fine,
     quasi-Newton's first search directions were 300-860 mm there, K indefinite at its
-    iterates, 141 iterations and 15 factorisations (356 s); without its flaps (3 % of the
-    cells), 26 and 1 (31 s); at medium and paper, 14 and 22 iterations became 9; the
+    iterates, 141 iterations and 15 factorisations (356 s); without its flaps (0.55 % of
+    the cells), 26 and 1 (31 s); at medium and paper, 14 and 22 iterations became 9; the
     landmarks' motion within 0.015 mm. Not kept (docs/decisions.md): flaps away from the band
     too (Sn 0.06 mm off at paper), or only cells touching no held bone at all (a hinged
     remnant then took medium to 60 iterations).
