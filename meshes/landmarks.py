@@ -25,7 +25,7 @@ A bulge or a hollow counts where it stands out by `PROMINENCE_MM` (the synthetic
 stomion is 0.9 mm deep once voxelised), or on a mesh of a CT's voxels by half a voxel along
 the profile's forward axis where that is more (`prominence_mm`: the voxels' staircase); a
 flat one is marked at the middle of its part within
-`PLATEAU_MM` of its extreme. A landmark whose feature the
+`PLATEAU_MM` of its extreme (N's hollow: `HOLLOW_PLATEAU_MM`). A landmark whose feature the
 scan does not hold (a field of view that ends at the lip) is absent, not guessed: the chains
 of bulges do not cross a gap in the profile longer than `GAP_MM`, and no bulge or hollow is
 taken within `GAP_MM` of the end of the profile or of such a gap.
@@ -81,6 +81,12 @@ GAP_MM = 4.0
 SN_CHORD_MM = 25.0
 SN_SMOOTH_MM = 1.5
 PLATEAU_MM = 0.25
+#: N's hollow is flatter than a bulge: Cranium's lies within 0.5 mm of its deepest point over
+#: 5-8 mm of profile, and the middle of its part within 0.25 mm followed the skin's staircase.
+#: Cranium at paper pitched 5 and 10 degrees, shifted a quarter and half a voxel: N's rest
+#: position 1.65, 0.79, 0.30, 0.35 mm from the unmoved scan's, against 2.15, 1.76, 0.42, 0.80
+#: at `PLATEAU_MM` (a voxel's diagonal: 2.02 mm).
+HOLLOW_PLATEAU_MM = 0.5
 MENTON_BACK_MM = 20.0
 #: The tragion's construction (module docstring). The pinna stands out from the side of the
 #: head by 15-25 mm (headsq: 7 voxels of 3.2 mm), the cheek in front of it by far less than
@@ -212,7 +218,8 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
         found.update(zip(lips[::-1], chain))
     for name in ("Prn", "N", "Ls", "Li", "Pg"):   # a flat bulge or hollow: its middle
         if found.get(name) is not None:
-            found[name] = _middle(s, run, found[name], -1.0 if name == "N" else 1.0)
+            sign, plateau = (-1.0, HOLLOW_PLATEAU_MM) if name == "N" else (1.0, PLATEAU_MM)
+            found[name] = _middle(s, run, found[name], sign, plateau)
     out = {name: Landmark(tris[hits[i][0]].copy(), hits[i][1].copy())
            for name, i in found.items() if i is not None}
     if found.get("Pg") is not None:
@@ -321,15 +328,15 @@ def _bend(s, ts, i: int, j: int) -> np.ndarray:
     return np.gradient(np.gradient(g, ts[i:j + 1]), ts[i:j + 1])
 
 
-def _middle(values, run, i: int, sign: float) -> int:
+def _middle(values, run, i: int, sign: float, plateau: float = PLATEAU_MM) -> int:
     """The middle sample of the stretch of i's run around the extremum i where sign * values
-    stays within `PLATEAU_MM` of it: the most anterior (or deepest) point of a flat bulge is
+    stays within ``plateau`` mm of it: the most anterior (or deepest) point of a flat bulge is
     where its flat part is, not wherever 0.1 mm of noise puts it."""
     v = sign * np.asarray(values)
     lo = hi = i
-    while lo > 0 and run[lo - 1] == run[i] and v[lo - 1] >= v[i] - PLATEAU_MM:
+    while lo > 0 and run[lo - 1] == run[i] and v[lo - 1] >= v[i] - plateau:
         lo -= 1
-    while hi < len(v) - 1 and run[hi + 1] == run[i] and v[hi + 1] >= v[i] - PLATEAU_MM:
+    while hi < len(v) - 1 and run[hi + 1] == run[i] and v[hi + 1] >= v[i] - plateau:
         hi += 1
     return (lo + hi) // 2
 

@@ -195,6 +195,21 @@ def test_a_volume_without_bone_is_refused_through_the_script(tmp_path):
     assert not out.exists()
 
 
+def _moved_spec(spec: dict, R, t, centre) -> dict:
+    """The scene file with its planes moved by x -> R (x - centre) + centre + t, its crop the
+    moved box's bounds."""
+    spec = json.loads(json.dumps(spec))
+    for k in CRANIUM_PLANES:
+        spec[k] = {"point": (R @ (np.array(spec[k]["point"]) - centre) + centre + t).tolist(),
+                   "normal": (R @ np.array(spec[k]["normal"], float)).tolist()}
+    lo, hi = np.array(spec["crop"]["min"]), np.array(spec["crop"]["max"])
+    box = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                    for c in (lo[2], hi[2])])
+    box = (box - centre) @ R.T + centre + t
+    spec["crop"] = {**spec["crop"], "min": box.min(0).tolist(), "max": box.max(0).tolist()}
+    return spec
+
+
 def _shifted(v, spec: dict, voxels: float):
     """The volume's content moved by ``voxels`` of its own along every axis (linear
     interpolation, scipy), and the scene file's planes and crop moved with it: (volume, spec,
@@ -203,12 +218,30 @@ def _shifted(v, spec: dict, voxels: float):
 
     t = voxels * v.spacing
     a = ndimage.shift(v.array.astype(np.float32), (voxels,) * 3, order=1, mode="nearest")
-    spec = json.loads(json.dumps(spec))
-    for k in CRANIUM_PLANES:
-        spec[k]["point"] = (np.array(spec[k]["point"]) + t).tolist()
-    for k in ("min", "max"):
-        spec["crop"][k] = (np.array(spec["crop"][k]) + t).tolist()
-    return dataclasses.replace(v, array=a), spec, t
+    return dataclasses.replace(v, array=a), _moved_spec(spec, np.eye(3), t, np.zeros(3)), t
+
+
+def _pitched(v, spec: dict, degrees: float):
+    """The volume's content turned by ``degrees`` about the left-right axis through its
+    centre (linear interpolation, scipy, air beyond the field of view) on a grid of the
+    scanner's spacing and phase that holds it, and the scene file's planes and crop turned
+    with it: (volume, spec, rotation (3, 3), centre (3,))."""
+    from scipy import ndimage
+
+    a = np.radians(degrees)
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    s, o, n = v.spacing, v.origin, np.array(v.array.shape)
+    centre = o + s * (n - 1) / 2
+    corners = o + np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) \
+        * (n - 1) * s
+    turned = (corners - centre) @ R.T + centre
+    lo = np.floor((turned.min(0) - o) / s) * s + o
+    shape = tuple(np.ceil((turned.max(0) - lo) / s).astype(int) + 1)
+    out = ndimage.affine_transform(v.array.astype(np.float32), (R.T * s[None, :]) / s[:, None],
+                                   (R.T @ (lo - centre) + centre - o) / s, output_shape=shape,
+                                   order=1, cval=float(v.array.min()))
+    w = dataclasses.replace(v, array=out, origin=lo)
+    return w, _moved_spec(spec, R, np.zeros(3), centre), R, centre
 
 
 def _advance(tmp_path, name, mesh):
@@ -243,6 +276,25 @@ def test_cranium_moved_on_the_voxel_grid_predicts_the_same(tmp_path, resolution)
             assert np.linalg.norm(rest[k] - t - rest0[k]) <= _voxel(v), (voxels, k)
             d = np.linalg.norm(motion[k] - motion0[k])
             assert d <= MOTION_MM[resolution], (voxels, k, motion[k], motion0[k])
+
+
+@needs_cranium
+@pytest.mark.parametrize("degrees", [5.0, 10.0])
+def test_cranium_pitched_keeps_its_landmarks(tmp_path, cranium_paper, degrees):
+    """Cranium pitched by 5 and 10 degrees in the scanner (`_pitched`), its planes and crop
+    turned with it, through ct_scene.py at paper: each landmark, turned back, within a voxel
+    of the untilted scan's. N's hollow put it 2.15 mm off at 5 degrees before its own plateau
+    (`meshes.landmarks.HOLLOW_PLATEAU_MM`). The landmarks' predicted motion under a 5 mm
+    LeFort I is not held to the issue's 0.2 mm here: it moves 0.23-0.32 mm (not met,
+    docs/decisions.md)."""
+    w, spec, R, centre = _pitched(_cranium(), json.loads((EXAMPLES / "cranium.json")
+                                                         .read_text()), degrees)
+    rep = _scene(tmp_path, _write(w, tmp_path / "pitched.mha"), spec, "paper")
+    want = cranium_paper["landmarks"]
+    assert {"N", "Prn", "Sn"} <= set(rep["landmarks"]) & set(want), rep["landmarks"]
+    for k in set(rep["landmarks"]) & set(want):
+        back = R.T @ (np.array(rep["landmarks"][k]) - centre) + centre
+        assert np.linalg.norm(back - want[k]) <= _voxel(w), (k, back, want[k])
 
 
 @needs_cranium
