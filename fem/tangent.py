@@ -218,8 +218,10 @@ class Linearisation:
                 and not self.own_pc)
 
     def _apply_factor(self, vin: list, vout: list) -> bool:
-        """vout[i] = F⁻¹ vin[i] for the kept factor F, all columns in one MatMatSolve (MUMPS:
-        about the cost of one column). False where its package has no block solve."""
+        """vout[i] = F⁻¹ vin[i] for the kept factor F, all columns in one MatMatSolve: a
+        triangular solve reads the whole factor, once for all columns (MUMPS, class3 at paper,
+        2 ranks: one column 67-71 ms, six 132-141 ms). False where its package has no block
+        solve."""
         pc = self.kept.ksp.getPC()
         x = vin[0]
         n, N, m = x.getLocalSize(), x.getSize(), len(vin)
@@ -290,7 +292,7 @@ class TangentSolves:
         any iterate where a loose relative residual ``rtol`` is asked for
         (`Linearisation.block_cg`, at most `SolverPolicy.sensitivity_cg_its` iterations);
         else one factorisation of K at the equilibrium (where none is held) and one block
-        solve of all columns (MUMPS: ~ the cost of one column); else a tangent solve per
+        solve of all columns (`_apply_factor`); else a tangent solve per
         column (`step`). Collective."""
         lin, st = self.linearisation, self.state
         block = None
