@@ -323,6 +323,20 @@ class EnergyForms:
         local = det.min() if det.size else np.inf
         return self.domain.comm.allreduce(local, op=MPI.MIN)
 
+    def min_det_F_at(self) -> tuple:
+        """(smallest det F (`min_det_F`), the rest centroid (3,) mm of the cell where it is),
+        the same on every rank. Collective."""
+        comm = self.domain.comm
+        det = self._det_F().min(axis=1)
+        i = int(np.argmin(det)) if det.size else -1
+        value, owner = comm.allreduce((float(det[i]) if det.size else np.inf, comm.rank),
+                                      op=MPI.MINLOC)
+        point = None
+        if comm.rank == owner:
+            mesh = self.domain.mesh
+            point = mesh.geometry.x[compat.cell_nodes(mesh)[i], :3].mean(axis=0)
+        return value, comm.bcast(point, root=owner)
+
     def finite(self, x) -> bool:
         """x has no NaN or inf on any rank. Collective."""
         return self.domain.comm.allreduce(bool(np.all(np.isfinite(x.array_r))), op=MPI.LAND)

@@ -189,7 +189,9 @@ class NonlinearSolver:
             self.linearisation.moved()
             self.kept.moved()
         st = state.stats
-        st.goal_error, st.min_det_F = forms.active_goal_error(), forms.min_det_F()
+        st.goal_error = forms.active_goal_error()
+        st.min_det_F, where = forms.min_det_F_at()
+        st.min_det_F_at = tuple(float(c) for c in where)
         if st.goal_error > policy.goal_tolerance_mm:
             st.warnings.append(
                 f"active vertices end {st.goal_error:.3f} mm from their goals (> "
@@ -199,7 +201,8 @@ class NonlinearSolver:
         if st.min_det_F < COMPRESSION_WARN:
             st.warnings.append(
                 f"tissue compressed to {100 * st.min_det_F:.0f} % of its volume (min det F "
-                f"{st.min_det_F:.2f} < {COMPRESSION_WARN:g}): the treatment is beyond what the "
+                f"{st.min_det_F:.2f} < {COMPRESSION_WARN:g}) in the cell at rest at "
+                f"({', '.join(f'{c:.1f}' for c in where)}) mm: the treatment is beyond what the "
                 "soft tissue plausibly follows")
         if forms.domain.comm.rank == 0:
             for w in st.warnings:

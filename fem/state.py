@@ -38,6 +38,7 @@ class SolveStats:
     total: float = 0.0
     goal_error: float = 0.0   # max |u - B p| over active vertices, mm
     min_det_F: float = 1.0    # smallest volume ratio J at the equilibrium
+    min_det_F_at: tuple | None = None   # the rest centroid (x, y, z) mm of its cell
     warnings: list = dataclasses.field(default_factory=list)   # goal error, compression
 
     @property

@@ -74,6 +74,27 @@ def test_large_advance_reaches_equilibrium(mandible_only, tiny_anatomy):
     scene.eq.destroy()
 
 
+def test_the_most_compressed_cell_is_located(mandible_scene, tiny_anatomy):
+    """A 25 mm advance: the solve's smallest det F and the rest centroid it reports are the
+    smallest of det F computed here from the vertices' displacements (numpy, cell by cell,
+    on the anatomy's own numbering) and that cell's centroid."""
+    st = mandible_scene.solve({"mandible.advance_mm": 25.0})
+    dom, a = mandible_scene.domain, tiny_anatomy
+    every = dom.vertex_operator(np.arange(dom.n_vertices))
+    X = every.apply(np.zeros_like(mandible_scene.eq.u_eq.array))
+    x = every.apply(mandible_scene.eq.u_eq.array)
+
+    def edges(p):
+        q = p[a.cells]
+        return np.stack([q[:, k] - q[:, 0] for k in (1, 2, 3)], axis=2)   # (M, 3, 3)
+
+    det = np.linalg.det(edges(x)) / np.linalg.det(edges(X))
+    worst = int(np.argmin(det))
+    assert st.min_det_F == pytest.approx(det[worst], rel=1e-9)
+    assert np.allclose(st.min_det_F_at, X[a.cells[worst]].mean(axis=0), atol=1e-9)
+    assert np.sort(det)[1] > det[worst] * (1 + 1e-6)   # one cell is the smallest
+
+
 def test_inverted_first_order_start_follows_the_path(mandible_only, tiny_anatomy):
     """A 20 mm advance from rest: the first-order start inverts an element, so the solve
     starts from the path-following state (`Equilibrium.follow`) and refactorises there:
