@@ -75,7 +75,8 @@ def test_bench_options_are_checked_before_any_work(args, match):
 
 def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path):
     """simulate.py --p mandible.advance_mm=40 (bound 15): both warnings, on stderr and in
-    the report."""
+    the report; the crushed cell's place in the report's ``min_det_F_at_mm`` and in the
+    warning."""
     rep = tmp_path / "r.json"
     r = _run(SIM + ["--p", "mandible.advance_mm=40", "--report", str(rep)])
     assert r.returncode == 0, r.stderr[-2000:]
@@ -83,6 +84,10 @@ def test_a_treatment_beyond_its_bounds_and_crushed_tissue_are_reported(tmp_path)
     assert any("mandible.advance_mm = 40 mm is outside its feasible range [-15, 15]" in w
                for w in warnings), warnings
     assert any(w.startswith("tissue compressed to 3") for w in warnings), warnings
+    where = json.loads(rep.read_text())["min_det_F_at_mm"]
+    assert len(where) == 3 and np.all(np.isfinite(where)), where
+    assert any(f"at ({', '.join(f'{c:.1f}' for c in where)}) mm" in w for w in warnings), \
+        (where, warnings)
     for w in warnings:
         assert w in r.stderr
 
