@@ -399,14 +399,35 @@ def measure_bone(pre: Volume, post: Volume, bones: dict, registration) -> dict:
     return out
 
 
+def _beyond_skin(G: np.ndarray, points: np.ndarray, u: np.ndarray, skin: np.ndarray,
+                 reach: float) -> tuple:
+    """(nodes (K,), displacements (K, 3) mm): the points of G (N, 3) outside the skin
+    (triangles ``skin`` (T, 3) into ``points`` (P, 3), facing out) within ``reach`` mm of
+    it, not beside its rim, and the displacement u (P, 3) at each one's closest point on
+    the skin."""
+    from scipy.spatial import cKDTree
+
+    from meshes.surface import barycentric, closest_points, normals_at, on_rim
+
+    dist, _ = cKDTree(points[np.unique(skin)]).query(G, distance_upper_bound=reach)
+    near = np.flatnonzero(np.isfinite(dist))
+    _, q, tri = closest_points(G[near], points, skin)
+    out = ((np.einsum("ij,ij->i", G[near] - q, normals_at(points, skin, tri, q)) > 0)
+           & ~on_rim(q, points, skin))   # beyond its open rim: inside, or past the view
+    w = barycentric(points, skin, tri[out], q[out])
+    return near[out], np.einsum("kv,kvi->ki", w, u[skin[tri[out]]])
+
+
 def synthetic_postop(pre: Volume, cuts, points: np.ndarray, u: np.ndarray, motions: dict,
                      misplace: np.ndarray, noise_hu: float, seed: int = 0,
-                     skin_hu: float | None = None, bone_hu: float | None = None) -> Volume:
+                     skin_hu: float | None = None, bone_hu: float | None = None,
+                     skin: np.ndarray | None = None) -> Volume:
     """A post-operative CT made from ``pre`` with a known truth: the tissue displaced by u
-    (N, 3) mm given at the mesh's vertices ``points`` (N, 3) (linear between them, the
-    nearest vertex's beyond, none `WARP_MARGIN_MM` beyond them); the bone and the air it
-    encloses (the sinuses, the nasal cavity: `meshes.segment.labels_from_ct` at the
-    thresholds, default the pipeline's) fixed, or moved by its segment's motion
+    (N, 3) mm given at the mesh's vertices ``points`` (N, 3) (linear between them; outside
+    the ``skin`` (triangles (T, 3) into ``points``, facing out), where given, its closest
+    point's; the nearest vertex's beyond, none `WARP_MARGIN_MM` beyond them); the bone and
+    the air it encloses (the sinuses, the nasal cavity: `meshes.segment.labels_from_ct` at
+    the thresholds, default the pipeline's) fixed, or moved by its segment's motion
     {segment: 4×4} where the osteotomies ``cuts`` (`meshes.osteotomy`) put it in one; then
     misplaced by ``misplace`` (4×4: scene -> post-operative CT) on the grid that holds it,
     in one trilinear resampling (`FOV_PAD_HU` beyond the pre-operative view), and noised
@@ -427,6 +448,8 @@ def synthetic_postop(pre: Volume, cuts, points: np.ndarray, u: np.ndarray, motio
     U = LinearNDInterpolator(points, u)(G)
     far = np.isnan(U[:, 0])
     U[far] = u[cKDTree(points).query(G[far])[1]]
+    if skin is not None:   # beyond the skin: its closest point's, not a blend across the air
+        beyond, U[beyond] = _beyond_skin(G, points, u, skin, WARP_MARGIN_MM)
     U = U.reshape(*(len(a) for a in axes), 3)
 
     def on_grid(field, x):   # a (g, g, g, 3) field at points x (K, 3), trilinear
@@ -495,5 +518,7 @@ def simulated_postop(scene, p: np.ndarray, pre: Volume, cuts, misplace: np.ndarr
     frame = scene.head_frame
     cuts = cuts.with_midsagittal(Plane(tuple(frame.origin), tuple(frame.rotation[:, 0])))
     hu = dom.thresholds or {}
+    verts = dom.boundary_vertices()
     return synthetic_postop(pre, cuts, X, u, scene.transforms(p), misplace, noise_hu, seed,
-                            hu.get("skin_hu"), hu.get("bone_hu"))
+                            hu.get("skin_hu"), hu.get("bone_hu"),
+                            verts[dom.boundary_triangles(verts)])

@@ -93,15 +93,22 @@ def normals_at(points: np.ndarray, tris: np.ndarray, tri: np.ndarray,
     the vertex normals (`vertex_normals`) interpolated at q's barycentric coordinates, a
     field continuous across edges (a point on an edge has one normal, whichever triangle
     holds it)."""
+    vn = vertex_normals(points, tris)[tris[tri]]   # (K, 3 vertices, 3)
+    out = np.einsum("kv,kvi->ki", barycentric(points, tris, tri, q), vn)
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+
+def barycentric(points: np.ndarray, tris: np.ndarray, tri: np.ndarray,
+                q: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (K, 3), clipped to [0, 1], of points q (K, 3) on the
+    triangles ``tri`` (K,) of the surface (``points``, ``tris``)."""
     a, b, c = (points[tris[tri, i]] for i in range(3))
     n = np.cross(b - a, c - a)
     area = np.maximum(np.einsum("ij,ij->i", n, n), 1e-300)
     w = np.stack([np.einsum("ij,ij->i", np.cross(c - b, q - b), n),
                   np.einsum("ij,ij->i", np.cross(a - c, q - c), n),
                   np.einsum("ij,ij->i", np.cross(b - a, q - a), n)], axis=1) / area[:, None]
-    vn = vertex_normals(points, tris)[tris[tri]]   # (K, 3 vertices, 3)
-    out = np.einsum("kv,kvi->ki", np.clip(w, 0.0, 1.0), vn)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+    return np.clip(w, 0.0, 1.0)
 
 
 def closest_points(query: np.ndarray, points: np.ndarray, tris: np.ndarray) -> tuple:

@@ -183,7 +183,7 @@ def main(argv=None):
 
     from fem.io import write_json
     from fem.material import material_file, with_theta
-    from inverse.calibration import Cases, fit
+    from inverse.calibration import NG, Cases, fit
     from inverse.uncertainty import Prior, scene_prior
     from meshes.errors import InputError, MeshError
 
@@ -212,7 +212,7 @@ def main(argv=None):
             [Cases(mine, names, comm)])
     fits = []
     for cases in sets:
-        cases.stack(np.concatenate([prior.mean, np.zeros(6 * len(cases.names))]),
+        cases.stack(np.concatenate([prior.mean, np.zeros(NG * len(cases.names))]),
                     len(prior.mean), False)   # at the start: each outcome overlaps its scene
         before = _gathered(cases, _regions)
         found = fit(cases, prior, args.noise_mm, args.max_iterations, bounds)
@@ -227,8 +227,11 @@ def main(argv=None):
                      "prior_sd": dict(zip(prior.names, prior.sd.tolist())),
                      "material": spec, "unseen": found.unseen,
                      "iterations": found.iterations, "converged": found.converged,
-                     "history": found.history, "registration_correction": found.registration,
+                     "history": found.history,
+                     "registration_correction": {k: g[:6] for k, g in found.registration.items()},
+                     "skin_offset_mm": {k: g[6] for k, g in found.registration.items()},
                      "residual_rms_mm": {"before": found.rms_before, "after": found.rms_after},
+                     "outliers": found.outliers,
                      "fit": _quality(found, args.noise_mm),
                      "error_before_mm": before, "error_after_mm": after})
     if args.each:   # every group's fits, in the cases' order

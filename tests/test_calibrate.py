@@ -38,13 +38,15 @@ def _ok(cmd):
     return r
 
 
-def _validated(d, scene, moves, seed=46) -> dict:
+def _validated(d, scene, moves, seed=46, bump=None) -> dict:
     """The truth simulated, its skin scanned, validated with the default tissue, in ``d``:
-    the case's report path and the truth's landmarks."""
+    the case's report path and the truth's landmarks. ``bump`` (landmark, offset (3,) mm,
+    radius mm, height mm): the scan swollen there, as a dome along the skin's normals over
+    the radius around the landmark moved by the offset, which the tissue does not explain."""
     import meshio
     from scipy.spatial.transform import Rotation
 
-    from meshes.surface import synthetic_scan, write_surface
+    from meshes.surface import synthetic_scan, vertex_normals, write_surface
 
     d.mkdir(exist_ok=True)
     (d / "truth.json").write_text(json.dumps(TRUTH))
@@ -54,13 +56,19 @@ def _validated(d, scene, moves, seed=46) -> dict:
     assert sim.returncode == 0
     skin = meshio.read(d / "sim" / "deformed.xdmf")
     tris = skin.cells[0].data[skin.cell_data["tag"][0] == 1]
+    points = skin.points
+    truth = json.loads((d / "sim" / "r.json").read_text())["landmarks"]
+    if bump is not None:
+        name, offset, radius, height = bump
+        r = np.linalg.norm(points - (np.add(truth[name], offset)), axis=1) / radius
+        dome = height * np.clip(1.0 - r ** 2, 0.0, None)
+        points = points + dome[:, None] * vertex_normals(points, tris)
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = Rotation.from_rotvec(np.radians(MISPLACE[0])).as_matrix(), MISPLACE[1]
-    write_surface(d / "scan.ply", *synthetic_scan(skin.points, tris, NOISE_MM, M, seed=seed))
+    write_surface(d / "scan.ply", *synthetic_scan(points, tris, NOISE_MM, M, seed=seed))
     _ok(VALIDATE + scene + moves + ["--post", str(d / "scan.ply"), "--out", str(d / "v"),
                                     "--report", str(d / "v" / "report.json")])
-    return {"case": d / "v" / "report.json", "scene": scene, "moves": moves,
-            "truth": json.loads((d / "sim" / "r.json").read_text())["landmarks"]}
+    return {"case": d / "v" / "report.json", "scene": scene, "moves": moves, "truth": truth}
 
 
 def _calibrated(d, *cases) -> dict:
@@ -125,6 +133,22 @@ def _check_recovery(d, cases, report, seen):
 def test_calibration_recovers_the_synthetic_heads_tissue(synthetic):
     """class3 (coarse, skin, fat and lean tissue), a double-jaw advance."""
     _check_recovery(*synthetic, seen=("fat", "muscle"))
+
+
+def test_a_swelling_the_tissue_does_not_explain_is_left_out(synthetic):
+    """The same outcome with a dome 1.5 mm high over a 10 mm radius on the cheek beside the
+    lower lip (swelling, a dressing): more of its vertices are left out as outliers, and the
+    ratios come back within 1 % of the clean scan's (least squares: fat's 7.5 % lower)."""
+    d, (clean,), report = synthetic
+    case = _validated(d / "swollen", clean["scene"], clean["moves"],
+                      bump=("Li", (20.0, 0.0, 0.0), 10.0, 1.5))
+    (fitted,) = _calibrated(d / "swollen", case)["fits"]
+    (unswollen,) = report["fits"]
+    for k, r in fitted["ratios"].items():
+        assert abs(np.log(r["value"] / unswollen["ratios"][k]["value"])) < 0.01, (
+            k, r, unswollen["ratios"][k])
+    assert unswollen["outliers"]["v"] < fitted["outliers"]["v"] < 0.05, (fitted["outliers"],
+                                                                      unswollen["outliers"])
 
 
 @needs_cranium
@@ -246,8 +270,10 @@ def test_calibration_from_a_post_operative_ct(cranium):
     """The truth as a post-operative CT (Cranium warped by the simulated outcome, misplaced
     and noised: `inverse.postop.simulated_postop`), validated with --pre-ct: the CT skin's
     voxel bias comes off the residual (with the pre-operative CT's skin extracted alike),
-    and what is left of it is reported against the noise given. Its ratios stay within 3
-    posterior SDs of the truth's."""
+    and what is left of it is reported against the noise given; a few vertices are left
+    out (at the nostrils, lips and eyelids), and the skin's offset is fitted (the resampled
+    skin lies about 0.02 mm deeper). Its ratios stay within 3 posterior SDs of the truth's:
+    at coarse, the SD is 7 % (BENCHMARKS.md: two at paper, within 5 %)."""
     from scipy.spatial.transform import Rotation
 
     from fem.material import Tissues
@@ -277,6 +303,7 @@ def test_calibration_from_a_post_operative_ct(cranium):
     assert rms < 0.1 < fitted["error_before_mm"]["v"]["face"]["rms"], fitted   # bias off
     assert fitted["fit"]["residual_over_noise"] == pytest.approx(
         fitted["residual_rms_mm"]["after"]["v"] / 0.05)
+    assert fitted["outliers"]["v"] < 0.05 and abs(fitted["skin_offset_mm"]["v"]) < 0.1, fitted
     true_E = {c: TRUTH.get(c, {}).get("E", getattr(Tissues(), c).E) for c in ("skin", "fat",
                                                                               "muscle")}
     for key, r in fitted["ratios"].items():
