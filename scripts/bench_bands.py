@@ -127,7 +127,8 @@ def bands(args) -> None:
               "noise (0.005 for none). The last row: two post-operative CTs of the truth at "
               f"{args.resolution} (Cranium warped by each outcome, misplaced, resampled, "
               f"{CT_NOISE_HU:g} HU of noise: `inverse.postop.simulated_postop`), `validate.py "
-              f"--pre-ct`, one `calibrate.py` of both, `--noise-mm {CT_NOISE_MM:g}`. The "
+              f"--pre-ct`, one `calibrate.py` of both, `--noise-mm {CT_NOISE_MM:g}` (the face "
+              "RMS: to each CT's skin as extracted, its voxel bias in it). The "
               "ratios are what a displacement can see; the moduli's common scale is reported "
               "unseen in every row.", "",
               *table(["scene", "scan noise mm", "E fat/skin (truth 0.181)",
