@@ -16,8 +16,10 @@ with ``--split`` the ranks split into groups that take a case each.
 
 Writes ``material.json`` (``material_<case>.json`` with ``--each``): the fitted moduli, for
 ``--material``, with the posterior's spreads, for ``--prior`` of the next fit; and the report:
-θ with its posterior SD, the directions the data cannot see, and the errors before and after
-over the face and per region. Bad input is one line, exit 2, nothing written.
+θ with its posterior SD, the directions the data cannot see, the errors before and after
+over the face and per region, and per case its registration's correction, its skin's offset
+(mm) and the share of its skin left out as outliers. Bad input is one line, exit 2, nothing
+written.
 """
 
 from __future__ import annotations
