@@ -173,9 +173,8 @@ class Fit:
     data precision / prior precision}``), ``rms_before``/``rms_after`` per case (mm),
     ``iterations``, ``converged``, ``history`` (objective per iteration), ``registration``
     per case: its g (the registration's correction: rotation vector rad, translation mm;
-    the skin offset δ mm), ``outliers`` per case:
-    the share of its compared vertices left out (`OUTLIER_SDS`); ``rms_after`` is the
-    rest's."""
+    the skin offset δ mm), ``outliers`` per case: the share of its compared vertices left
+    out (`OUTLIER_SDS`); ``rms_after`` is the rest's."""
 
     theta: np.ndarray
     posterior: np.ndarray
@@ -238,7 +237,6 @@ class Cases:
             block[:, n_theta + NG * i:n_theta + NG * (i + 1)] = j[:, n_theta:]
             js.append(block)
         return rs, np.vstack(js)
-
 
     def trim(self, noise_mm: float) -> bool:
         """`Case.trim` of every case at the last solve; whether any set changed. Collective
