@@ -51,14 +51,16 @@ def segment_regions(v, spec: dict) -> dict:
     return out
 
 
-def motion(rotvec_deg, t, centre) -> np.ndarray:
-    """4x4 of x -> R (x - centre) + centre + t, R of the rotation vector ``rotvec_deg``."""
+def motion(rotvec_deg, t, centre=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """4x4 of x -> R (x - centre) + centre + t, R of the rotation vector ``rotvec_deg``
+    (degrees): a segment's motion, or a scan's misplacement (about the origin)."""
     from scipy.spatial.transform import Rotation
 
     R = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    centre = np.asarray(centre, float)
     T = np.eye(4)
     T[:3, :3] = R
-    T[:3, 3] = np.asarray(t, float) + np.asarray(centre, float) - R @ centre
+    T[:3, 3] = np.asarray(t, float) + centre - R @ centre
     return T
 
 

@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 import pytest
+from hostile_postop import motion
 from test_ct import (
     CRANIUM,
     CT_SCENE,
@@ -45,7 +46,6 @@ def _validated(d, scene, moves, seed=46, bump=None, sim=None) -> dict:
     mm): the scan swollen there, as a dome along the skin's normals over the radius around
     the landmark moved by the offset, which the tissue does not explain."""
     import meshio
-    from scipy.spatial.transform import Rotation
 
     from meshes.surface import synthetic_scan, vertex_normals, write_surface
 
@@ -64,8 +64,7 @@ def _validated(d, scene, moves, seed=46, bump=None, sim=None) -> dict:
         r = np.linalg.norm(points - (np.add(truth[name], offset)), axis=1) / radius
         dome = height * np.clip(1.0 - r ** 2, 0.0, None)
         points = points + dome[:, None] * vertex_normals(points, tris)
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = Rotation.from_rotvec(np.radians(MISPLACE[0])).as_matrix(), MISPLACE[1]
+    M = motion(*MISPLACE)
     write_surface(d / "scan.ply", *synthetic_scan(points, tris, NOISE_MM, M, seed=seed))
     _ok(VALIDATE + scene + moves + ["--post", str(d / "scan.ply"), "--out", str(d / "v"),
                                     "--report", str(d / "v" / "report.json")])
@@ -276,8 +275,6 @@ def test_calibration_from_a_post_operative_ct(cranium):
     out (at the nostrils, lips and eyelids), and the skin's offset is fitted (the resampled
     skin lies about 0.02 mm deeper). Its ratios stay within 3 posterior SDs of the truth's:
     at coarse, one CT's SD is 10-13 % (BENCHMARKS.md: two at paper, within 5 %)."""
-    from scipy.spatial.transform import Rotation
-
     from fem.material import Tissues
     from inverse.postop import simulated_postop
     from inverse.scene import Scene
@@ -291,8 +288,7 @@ def test_calibration_from_a_post_operative_ct(cranium):
     (ct / "truth.json").write_text(json.dumps(TRUTH))
     truth = Scene(lambda: load_tet_mesh(mesh), material=str(ct / "truth.json"))
     p = truth.param_vector({"maxilla.advance_mm": 5, "maxilla.vertical_mm": -1})
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = Rotation.from_rotvec(np.radians(MISPLACE[0])).as_matrix(), MISPLACE[1]
+    M = motion(*MISPLACE)
     cuts = parse_scene_file(ROOT / "meshes" / "examples" / "cranium.json")[1]
     write_volume(simulated_postop(truth, p, read_volume(CRANIUM), cuts, M, 20.0), ct / "post.mha")
     _ok(VALIDATE + ["--mesh", str(mesh), *case["moves"], "--post", str(ct / "post.mha"),

@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+from hostile_postop import motion
 from test_ct import (
     CRANIUM,
     CT_SCENE,
@@ -24,7 +25,6 @@ from test_validate import (
     P_CRANIUM,
     VALIDATE,
     _p,
-    _rotvec,
     assert_same_reports,
     own_distances,
 )
@@ -68,8 +68,7 @@ def _case(tmp, ct, scene_file, P) -> dict:
     mesh = tmp / "scene.vtu"
     scene = Scene(lambda: load_tet_mesh(mesh))
     skin, bones = Skin.of(scene), bone_surfaces(scene)
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = _rotvec(MISPLACE[0]), MISPLACE[1]
+    M = motion(*MISPLACE)
     p = scene.param_vector(P)
     post = simulated_postop(scene, p, read_volume(ct), parse_scene_file(scene_file)[1], M,
                             NOISE_HU)

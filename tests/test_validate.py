@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+from hostile_postop import motion
 from test_ct import (
     CRANIUM,
     CT_SCENE,
@@ -33,12 +34,6 @@ NOISE_MM = 0.1
 #: The scan keeps the skin whose normal is within this cosine of the face's forward axis
 #: (a frontal camera's view: cos 80 degrees).
 CAMERA_COS = 0.17
-
-
-def _rotvec(v_deg) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.radians(v_deg)).as_matrix()
 
 
 def _truth(scene, p: dict, **extra) -> dict:
@@ -87,8 +82,7 @@ def _scan(truth, path, seed=0, misplace=MISPLACE, mirror=False, crop=True, noise
     from meshes.surface import synthetic_scan, vertex_normals, write_surface
 
     frame = truth["frame"] or HeadFrame.identity()
-    M = np.eye(4)
-    M[:3, :3], M[:3, 3] = _rotvec(misplace[0]), misplace[1]
+    M = motion(*misplace)
     if mirror:
         M[0, :] *= -1   # left to right, as a scanner writing another handedness would
     def keep(x, tris):   # what a camera in front of the face sees: skin facing forward
