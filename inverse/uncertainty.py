@@ -41,10 +41,13 @@ NU_RANGE = (0.40, 0.499)
 
 
 #: The bands' relative residual, where block CG on a factor of K elsewhere solves dx/dθ
-#: (`fem.tangent.TangentSolves.responses`): class3 at paper, 5 mm advance from rest, its
-#: rows came within 0.4 % of 1e-6's (1e-2: 5 %, 1e-4: 0.01 %), in 1.24 s against 2.75 s,
-#: and 2.08 s for a factorisation at the equilibrium; a band needs no more than 1 %.
-BAND_RTOL = 1e-3
+#: (`fem.tangent.TangentSolves.responses`). At paper after a 5 mm advance from rest, the
+#: landmark rows' worst error over the largest row against CG to 1e-12 (the bands' SDs'):
+#: class3 with tissues 1.3 % at 1e-2 (0.9 %), 0.52 % at 3e-3 (0.26 %), 0.14 % at 1e-3
+#: (0.10 %); class3 homogeneous 5.1 % (5.7 %), 0.22 % (0.27 %), 0.36 % (0.42 %); Cranium
+#: sliding on tissues 0.27 % (0.46 %), 0.16 % (0.17 %), 0.04 % (0.04 %). 3e-3 takes 11
+#: iterations where 1e-3 takes 14 (class3 with tissues); a band needs no more than 1 %.
+BAND_RTOL = 3e-3
 #: What BAND_RTOL gives: each row (and band) within this fraction of the largest.
 BAND_ACCURACY = 0.01
 
