@@ -9,8 +9,8 @@ every `PROFILE_STEP_MM` from the bottom of the face to the top (its ``s``: how f
   where the profile turns forward again to the forehead (absent if the face ends before the
   forehead rises);
 * ``Ls`` (labrale superius), ``Li`` (labrale inferius), ``Pg`` (soft-tissue pogonion): the
-  first, second and third forward bulges below Prn; where the nose is not in the scan, the
-  lowest bulge is Pg, and the two above it Li and Ls;
+  three forward bulges below Prn that stand out most, top to bottom; where the nose is not
+  in the scan, the lowest of the three is Pg, and the two above it Li and Ls;
 * ``Sn`` (subnasale): the vertex of the nasolabial angle, the profile's sharpest concave turn
   between Prn and Ls, or `SN_CHORD_MM` below Prn where Ls is lower or not in the scan; where
   the profile ends before that, Sn is left out (the scene's report says why);
@@ -184,7 +184,7 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
     ts = ts[ok][::-1]
     pos = np.array([h[1] @ points[tris[h[0]]] for h in hits])
     s = (pos - o) @ a
-    peaks, hollows, depth = [], [], {}
+    peaks, hollows, stands_out = [], [], {}
     edge = int(np.ceil(GAP_MM / PROFILE_STEP_MM))   # the rounded rim of a cut or crop face
     for r in np.unique(run):
         idx = np.flatnonzero(run == r)
@@ -192,16 +192,15 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
             found_r, prom = _extrema(s[idx], sign, prominence)
             keep = (found_r >= edge) & (found_r < len(idx) - edge)
             marks += list(idx[found_r[keep]])
-            if sign < 0:
-                depth.update(zip(idx[found_r[keep]], prom[keep]))
+            stands_out.update(zip(idx[found_r[keep]], prom[keep]))
     found = {}
     prn = int(np.argmax(s))
     lips = ("Ls", "Li", "Pg")
     if prn in peaks:   # the nose is in the scan: the bulges below it, from the nose down
         found["Prn"] = prn
         upper = [j for j in hollows if j < prn and run[j] == run[prn]]
-        found["N"] = max(upper, key=depth.get) if upper else None
-        chain = [j for j in sorted(peaks) if j > prn and run[j] == run[prn]][:3]
+        found["N"] = max(upper, key=stands_out.get) if upper else None
+        chain = _most_prominent([j for j in peaks if j > prn and run[j] == run[prn]], stands_out)
         found.update(zip(lips, chain))
         lower = np.flatnonzero((run == run[prn]) & (ts <= ts[prn] - SN_CHORD_MM))
         ends = [j for j in (found.get("Ls"), lower[0] if len(lower) else None) if j is not None]
@@ -214,7 +213,7 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
             found["Sn"] = int(between[np.argmax(_bend(s, ts, prn, end)[between - prn])])
     elif peaks:   # no nose: from the chin up, Pg the lowest bulge
         last = max(peaks)
-        chain = [j for j in sorted(peaks, reverse=True) if run[j] == run[last]][:3]
+        chain = _most_prominent([j for j in peaks if run[j] == run[last]], stands_out)[::-1]
         found.update(zip(lips[::-1], chain))
     for name in ("Prn", "N", "Ls", "Li", "Pg"):   # a flat bulge or hollow: its middle
         if found.get(name) is not None:
@@ -317,6 +316,13 @@ def _components(mask):
 
     parts, count = ndimage.label(mask)
     return parts, ndimage.sum(mask, parts, index=np.arange(1, count + 1))
+
+
+def _most_prominent(marks: list, prominence: dict, n: int = 3) -> list:
+    """The ``n`` of ``marks`` (profile samples) that stand out most, top to bottom: the lips
+    and chin, not a bump between them (the synthetic head's 0.4 mm bulge under Sn, which
+    one voxelisation meshes 1.0 mm high and the next flat, took Ls's place)."""
+    return sorted(sorted(marks, key=prominence.get, reverse=True)[:n])
 
 
 def _bend(s, ts, i: int, j: int) -> np.ndarray:

@@ -232,3 +232,28 @@ def test_flaps_one_cell_thick_between_free_surfaces_are_dropped():
     tags[tags == FREE_BONE] = FIXED
     out = drop_flaps(points, cells, facets, tags)
     assert all(x is y for x, y in zip(out, (points, cells, facets, tags)))
+
+
+@pytest.mark.unit
+def test_a_small_bump_does_not_take_a_lips_name():
+    """A profile made by hand (Gaussians: the nose at z = 0, the lips at -27 and -40, the
+    chin at -56 mm, and a 0.8 mm bump at -15, under Sn): Ls, Li and Pg are the lips and the
+    chin, not the bump, which stands out by more than `PROMINENCE_MM` but least of the four.
+    On the synthetic CT at paper a 0.4 mm bulge under Sn, meshed 1.0 mm high on one voxel
+    grid and flat on the next, moved Ls, Li and Pg one bulge up (10-20 mm)."""
+    from meshes.landmarks import PROMINENCE_MM, profile_landmarks
+    from meshes.plane import Plane
+
+    bulges = {"Prn": (0.0, 20.0, 4.0), "Ls": (-27.0, 4.0, 3.0), "Li": (-40.0, 4.0, 3.0),
+              "Pg": (-56.0, 5.0, 4.0), "bump": (-15.0, 0.8, 1.0)}   # z, height, width mm
+    assert bulges["bump"][1] > PROMINENCE_MM
+    x, z = np.meshgrid(np.linspace(-20, 20, 21), np.arange(-70.0, 30.0, 0.25), indexing="ij")
+    y = 80.0 + sum(h * np.exp(-0.5 * ((z - c) / w) ** 2) for c, h, w in bulges.values())
+    points = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    nx, nz = x.shape
+    k = np.arange(nx * nz).reshape(nx, nz)[:-1, :-1].ravel()
+    tris = np.concatenate([np.stack([k, k + nz, k + 1], 1),
+                           np.stack([k + 1, k + nz, k + nz + 1], 1)])
+    found = profile_landmarks(points, tris, Plane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0)))
+    for name in ("Prn", "Ls", "Li", "Pg"):
+        assert abs(found[name].position(points)[2] - bulges[name][0]) < 0.5, name
