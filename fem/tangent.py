@@ -229,6 +229,7 @@ class Linearisation:
 
     @staticmethod
     def _columns_to(mat: PETSc.Mat, vout: list):
+        """Copy the dense matrix's columns into the PETSc vectors ``vout``."""
         cols = mat.getDenseArray()
         for i, v in enumerate(vout):
             v.array[:] = cols[:, i]
