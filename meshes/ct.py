@@ -10,7 +10,8 @@ Stages, each with the well-kept library for it:
    label), sized per resolution (`CGAL_SIZING`);
 4. **classify** each boundary facet by the label just outside it: skin (air), bone, crop
    (held: `RIM`) or free (air inside the head, a free crop face: no tag, traction-free); bone
-   facets by the osteotomy planes (`meshes.osteotomy`), and the segments' teeth and
+   facets by the osteotomy planes (`meshes.osteotomy`), once the bone's vertices are slid
+   onto the free bands' edges (`snap_to_edges`), and the segments' teeth and
    vestibule by HU (`meshes.teeth`); then the flaps the cut's free band leaves hanging go
    (`drop_flaps`);
 5. **landmarks** on the mid-sagittal profile and at the ears (`meshes.landmarks`), built in
