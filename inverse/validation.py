@@ -221,12 +221,12 @@ def summary(d: np.ndarray) -> dict:
 
 def compare(after: np.ndarray, rest: np.ndarray, skin_tris: np.ndarray, frame,
             landmarks_rest: dict, scan_points: np.ndarray, scan_tris: np.ndarray,
-            prominence: float) -> tuple:
+            staircase: float) -> tuple:
     """(report part, signed distance (N,), covered (N,)) of the predicted skin ``after``
     (N, 3, triangles ``skin_tris``) against the scan (registered: the scene's frame), with
     regions on the ``rest`` skin and its landmarks ``landmarks_rest`` (the scene's frame;
     ``frame`` the head frame, `meshes.frame`); the landmarks built on both skins alike
-    (module docstring), with the scene's ``prominence`` (`meshes.landmarks.prominence_mm`)."""
+    (module docstring), with the scene's ``staircase`` (`meshes.landmarks.staircase_mm`)."""
     from meshes.ct import HEAD_MIDSAGITTAL
     from meshes.landmarks import skin_landmarks
     from meshes.surface import boundary_edges, vertex_normals
@@ -248,7 +248,7 @@ def compare(after: np.ndarray, rest: np.ndarray, skin_tris: np.ndarray, frame,
     def built(x):   # {name: (3,)} of the constructions on the skin x (N, 3), in view
         try:
             found = skin_landmarks(frame.to_head(x), skin_tris, HEAD_MIDSAGITTAL,
-                                   prominence=prominence)
+                                   staircase=staircase)
         except MeshError:
             return {}
         return {k: v.position(x) for k, v in found.items() if seen[np.asarray(v.facet)].all()}

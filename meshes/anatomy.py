@@ -81,7 +81,7 @@ class Anatomy:
             for a label map's), which a post-operative CT of it is read with
             (`inverse.postop`); None for other scenes.
         voxel_mm: (3,) the voxel size (mm) of the CT or label map the mesh was made from:
-            its surfaces follow the voxels' staircase (`meshes.landmarks.prominence_mm`);
+            its surfaces follow the voxels' staircase (`meshes.landmarks.staircase_mm`);
             None for a mesh not made from voxels.
     """
 

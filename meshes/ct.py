@@ -61,7 +61,7 @@ from meshes.anatomy import (
 from meshes.errors import MeshError
 from meshes.frame import estimate_on_scan, from_spec
 from meshes.intensity import read_ct
-from meshes.landmarks import prominence_mm, skin_landmarks
+from meshes.landmarks import skin_landmarks, staircase_mm
 from meshes.metal import METAL_HU, reduce_metal
 from meshes.osteotomy import Osteotomies, resolve_plane_files
 from meshes.plane import Plane
@@ -423,7 +423,7 @@ def build(ct_path, scene_file, resolution: str, labelmap: bool = False):
     notes = {}
     anatomy.landmarks = skin_landmarks(frame.to_head(anatomy.points), skin, HEAD_MIDSAGITTAL,
                                        (facets[rest], ~np.isin(tags[rest], (0, RIM))),
-                                       prominence_mm(volume.spacing, frame), notes)
+                                       staircase_mm(volume.spacing, frame), notes)
     anatomy.validate()
     timings["landmarks"] = time.perf_counter() - t
     t = time.perf_counter()

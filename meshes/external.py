@@ -27,7 +27,7 @@ Two paths, both ending in a validated `Anatomy`:
         "ct_thresholds": {"skin_hu": -400, "bone_hu": 226},  # optional: a CT scene's
                                                  # segmentation (`inverse.postop`)
         "ct_voxel_mm": [0.96, 0.96, 1.5],        # optional: the voxels the mesh was made
-                                                 # from (`meshes.landmarks.prominence_mm`)
+                                                 # from (`meshes.landmarks.staircase_mm`)
         "landmarks": {"Pg": [0, 101.7, -66], "Li": {"facet": [i, j, k], "weights": [a, b, c]}}}
 
    A landmark given as a point is projected onto the nearest skin facet; it must lie within

@@ -22,13 +22,16 @@ thin skin the mesh loses), the profile goes on across it; where it meets a crop 
 nothing, the profile has a gap.
 
 A bulge or a hollow counts where it stands out by `PROMINENCE_MM` (the synthetic heads'
-stomion is 0.9 mm deep once voxelised), or on a mesh of a CT's voxels by half a voxel along
-the profile's forward axis where that is more (`prominence_mm`: the voxels' staircase); a
-flat one is marked at the middle of its part within
-`PLATEAU_MM` of its extreme (N's hollow: `HOLLOW_PLATEAU_MM`). A landmark whose feature the
-scan does not hold (a field of view that ends at the lip) is absent, not guessed: the chains
-of bulges do not cross a gap in the profile longer than `GAP_MM`, and no bulge or hollow is
-taken within `GAP_MM` of the end of the profile or of such a gap.
+stomion is 0.9 mm deep once voxelised), or on a mesh of a CT's voxels by `STAIRCASE` of a
+voxel along the profile's forward axis where that is more (`staircase_mm`: the voxels'
+staircase); it is marked at the middle of its part within `PLATEAU_MM` of its extreme (N's
+hollow: `HOLLOW_PLATEAU_MM`; Pg's: `CHIN_PLATEAU`), short of the next extreme of the other
+kind.
+
+A landmark whose feature the scan does not hold (a field of view that ends at the lip) is
+absent, not guessed: the chains of bulges do not cross a gap in the profile longer than
+`GAP_MM`, and no bulge or hollow is taken within `GAP_MM` of the end of the profile or of
+such a gap.
 
 Tragion (``T_L``, ``T_R``: the notch above the tragus, just in front of the ear canal) is
 built where the ear is in the scan (`tragion_landmarks`). On each side the skin's lateral
@@ -87,6 +90,16 @@ PLATEAU_MM = 0.25
 #: position 1.65, 0.79, 0.30, 0.35 mm from the unmoved scan's, against 2.15, 1.76, 0.42, 0.80
 #: at `PLATEAU_MM` (a voxel's diagonal: 2.02 mm).
 HOLLOW_PLATEAU_MM = 0.5
+#: Pg's plateau on a mesh of voxels, in voxels along the forward axis (`staircase_mm`), where
+#: that is more than `PLATEAU_MM`: the chin's front can be flat over more than a voxel, and
+#: the staircase then holds it only to within one. The synthetic CT (1.25 mm voxels) at
+#: paper, moved a quarter and half a voxel and pitched 5 and 10 degrees: its chin's front
+#: is flat within 0.08 mm over 14 mm on the unmoved scan and a slanted staircase on the
+#: moved ones; Pg's rest position moved 3.19 mm (a voxel's diagonal: 2.17) at `PLATEAU_MM`,
+#: 1.62 at one voxel. Not for the lips, which are curved: a voxel's plateau there moved Ls
+#: 5.3 mm on the synthetic CT in 12-bit gray values, and Li down to where the tragion's
+#: search (above Li) took the jaw for an ear.
+CHIN_PLATEAU = 1.0
 MENTON_BACK_MM = 20.0
 #: The tragion's construction (module docstring). The pinna stands out from the side of the
 #: head by 15-25 mm (headsq: 7 voxels of 3.2 mm), the cheek in front of it by far less than
@@ -118,15 +131,14 @@ def _crossing(points, tris, plane):
     return np.flatnonzero((d.min(axis=1) <= 0) & (d.max(axis=1) >= 0))
 
 
-def prominence_mm(voxel_mm=None, frame=None) -> float:
-    """How far (mm) a bulge or hollow of the profile must stand out on a mesh made from
-    voxels of ``voxel_mm`` (3,) mm (None: not from voxels), its head frame ``frame``
-    (`meshes.frame.HeadFrame`, None: the identity): `PROMINENCE_MM`, or `STAIRCASE` of a voxel
-    along the head's forward axis where that is more."""
+def staircase_mm(voxel_mm=None, frame=None) -> float:
+    """A voxel's depth (mm) along the head's forward axis, on a mesh made from voxels of
+    ``voxel_mm`` (3,) mm (None: not from voxels: 0), its head frame ``frame``
+    (`meshes.frame.HeadFrame`, None: the identity): the profile's staircase (module docstring)."""
     if voxel_mm is None:
-        return PROMINENCE_MM
+        return 0.0
     forward = np.array([0.0, 1.0, 0.0]) if frame is None else frame.rotation[:, 1]
-    return max(PROMINENCE_MM, STAIRCASE * float(np.linalg.norm(np.asarray(voxel_mm) * forward)))
+    return float(np.linalg.norm(np.asarray(voxel_mm) * forward))
 
 
 def _extrema(s, sign: float, prominence: float):
@@ -139,15 +151,16 @@ def _extrema(s, sign: float, prominence: float):
 
 
 def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
-                      surface=None, prominence: float = PROMINENCE_MM,
+                      surface=None, staircase: float = 0.0,
                       notes: dict | None = None) -> dict:
     """Landmarks {name: `Landmark`} on the skin facets ``skin`` (S, 3) over ``points`` (N, 3),
     built on the profile in ``plane`` (module docstring). ``surface``: (facets (B, 3), is_bone
     (B,)) the rest of the boundary; a ray that misses the skin and meets bone first bridges
-    the profile (a free crop face or a held one in front of it does not). ``prominence``:
-    how far (mm) a bulge or hollow stands out (`prominence_mm`). ``notes`` (a dict, filled):
+    the profile (a free crop face or a held one in front of it does not). ``staircase``: a
+    voxel's depth (mm) along the profile (`staircase_mm`). ``notes`` (a dict, filled):
     why a landmark the scan seems to hold was left out."""
     notes = {} if notes is None else notes
+    prominence = max(PROMINENCE_MM, STAIRCASE * staircase)
     o, a, u = _plane_axes(plane)
     tris = skin[_crossing(points, skin, plane)]
     other, is_bone = (np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=bool)) \
@@ -216,9 +229,11 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
         chain = _most_prominent([j for j in peaks if run[j] == run[last]], stands_out)[::-1]
         found.update(zip(lips[::-1], chain))
     for name in ("Prn", "N", "Ls", "Li", "Pg"):   # a flat bulge or hollow: its middle
-        if found.get(name) is not None:
-            sign, plateau = (-1.0, HOLLOW_PLATEAU_MM) if name == "N" else (1.0, PLATEAU_MM)
-            found[name] = _middle(s, run, found[name], sign, plateau)
+        i = found.get(name)
+        if i is not None:
+            sign, plateau = (-1.0, HOLLOW_PLATEAU_MM) if name == "N" else \
+                (1.0, max(PLATEAU_MM, CHIN_PLATEAU * staircase) if name == "Pg" else PLATEAU_MM)
+            found[name] = _middle(s, run, i, sign, plateau, hollows if sign > 0 else peaks)
     out = {name: Landmark(tris[hits[i][0]].copy(), hits[i][1].copy())
            for name, i in found.items() if i is not None}
     if found.get("Pg") is not None:
@@ -229,11 +244,11 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
 
 
 def skin_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane, surface=None,
-                   prominence: float = PROMINENCE_MM, notes: dict | None = None) -> dict:
+                   staircase: float = 0.0, notes: dict | None = None) -> dict:
     """Every landmark the scan holds {name: `Landmark`}: the profile's (``surface``,
-    ``prominence`` and ``notes``: as in `profile_landmarks`), and tragion searched above the
+    ``staircase`` and ``notes``: as in `profile_landmarks`), and tragion searched above the
     lowest of Li, Pg and Me that the profile found (module docstring)."""
-    found = profile_landmarks(points, skin, plane, surface, prominence, notes)
+    found = profile_landmarks(points, skin, plane, surface, staircase, notes)
     _, _, u = _plane_axes(plane)
     floor = max(((found[k].position(points) - plane.point) @ u for k in ("Li", "Pg", "Me")
                  if k in found), default=-np.inf)
@@ -334,15 +349,19 @@ def _bend(s, ts, i: int, j: int) -> np.ndarray:
     return np.gradient(np.gradient(g, ts[i:j + 1]), ts[i:j + 1])
 
 
-def _middle(values, run, i: int, sign: float, plateau: float = PLATEAU_MM) -> int:
+def _middle(values, run, i: int, sign: float, plateau: float = PLATEAU_MM, stops=()) -> int:
     """The middle sample of the stretch of i's run around the extremum i where sign * values
-    stays within ``plateau`` mm of it: the most anterior (or deepest) point of a flat bulge is
-    where its flat part is, not wherever 0.1 mm of noise puts it."""
+    stays within ``plateau`` mm of it, short of the samples ``stops`` (the extrema of the other
+    kind): the most anterior (or deepest) point of a flat bulge is where its flat part is, not
+    wherever 0.1 mm of noise puts it."""
     v = sign * np.asarray(values)
+    stop = np.zeros(len(v), dtype=bool)
+    stop[list(stops)] = True
     lo = hi = i
-    while lo > 0 and run[lo - 1] == run[i] and v[lo - 1] >= v[i] - plateau:
+    while lo > 0 and run[lo - 1] == run[i] and not stop[lo - 1] and v[lo - 1] >= v[i] - plateau:
         lo -= 1
-    while hi < len(v) - 1 and run[hi + 1] == run[i] and v[hi + 1] >= v[i] - plateau:
+    while hi < len(v) - 1 and run[hi + 1] == run[i] and not stop[hi + 1] and \
+            v[hi + 1] >= v[i] - plateau:
         hi += 1
     return (lo + hi) // 2
 

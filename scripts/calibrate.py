@@ -92,12 +92,12 @@ def _regions(case) -> dict:
     """The face's and each region's error (validation.compare) at the case's equilibrium,
     against its outcome as the fit corrected its registration."""
     from inverse import validation
-    from meshes.landmarks import prominence_mm
+    from meshes.landmarks import staircase_mm
 
     scene = case.scene
     part, _, _ = validation.compare(case.skin.at(scene), case.skin.rest, case.skin.tris,
                                     scene.head_frame, scene.landmarks(rest=True), case.outcome,
-                                    case.tris, prominence_mm(scene.domain.voxel_mm,
+                                    case.tris, staircase_mm(scene.domain.voxel_mm,
                                                              scene.head_frame))
     return {"face": part["error_mm"], **part["regions"]}
 

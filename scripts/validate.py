@@ -146,7 +146,7 @@ def main(argv=None):
 
     from fem.io import write_json, write_on_root
     from inverse import validation
-    from meshes.landmarks import prominence_mm
+    from meshes.landmarks import staircase_mm
     from meshes.surface import apply, read_surface, write_surface
 
     t0 = time.perf_counter()
@@ -186,7 +186,7 @@ def main(argv=None):
         both = np.vstack([rest, after])
         scan = _crop(*scan, both.min(axis=0) - CROP_MM, both.max(axis=0) + CROP_MM)
     part, d, covered = validation.compare(after, rest, tris, frame, landmarks_rest, *scan,
-                                          prominence_mm(scene.domain.voxel_mm, frame))
+                                          staircase_mm(scene.domain.voxel_mm, frame))
     timings["comparison"] = time.perf_counter() - t
     out = Path(args.out)
     report = {"case": scene.case or scene.domain.name, "mesh": args.mesh,

@@ -61,6 +61,23 @@ def synthetic_ct(tmp_path_factory):
     return d / "class1.mha", d / "class1.json"
 
 
+def moved_spec(spec: dict, R, t, centre) -> dict:
+    """The scene file with its cuts (`meshes.osteotomy.PLANES`) moved by
+    x -> R (x - centre) + centre + t, its crop the moved box's bounds."""
+    from meshes.osteotomy import PLANES
+
+    spec = json.loads(json.dumps(spec))
+    for k in (k for k in PLANES if k in spec):
+        spec[k] = {"point": (R @ (np.array(spec[k]["point"]) - centre) + centre + t).tolist(),
+                   "normal": (R @ np.array(spec[k]["normal"], float)).tolist()}
+    lo, hi = np.array(spec["crop"]["min"]), np.array(spec["crop"]["max"])
+    box = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                    for c in (lo[2], hi[2])])
+    box = (box - centre) @ R.T + centre + t
+    spec["crop"] = {**spec["crop"], "min": box.min(0).tolist(), "max": box.max(0).tolist()}
+    return spec
+
+
 def _ct_scene(tmp_path, ct, scene, *extra, resolution="coarse"):
     out = tmp_path / "scene"
     r = _run(CT_SCENE + ["--ct", str(ct), "--osteotomies", str(scene), "--resolution",

@@ -5,7 +5,17 @@ import json
 
 import numpy as np
 import pytest
-from test_ct import CRANIUM, CT_SCENE, EXAMPLES, HEADSQ, PLAN, SIMULATE, _run, needs_cranium
+from test_ct import (
+    CRANIUM,
+    CT_SCENE,
+    EXAMPLES,
+    HEADSQ,
+    PLAN,
+    SIMULATE,
+    _run,
+    moved_spec,
+    needs_cranium,
+)
 
 #: The tests' tier (conftest.py): tilted CTs through the scripts.
 TIER = "scripts"
@@ -417,15 +427,7 @@ def test_tilted_cranium_landmarks_through_ct_scene(tmp_path):
     reports = {}
     for angles in (None, PITCHED[0]):
         R = np.eye(3) if angles is None else _rotation(*angles)
-        spec = json.loads(json.dumps(spec0))
-        for k in ("midsagittal", "lefort1", "pterygomaxillary"):
-            spec[k] = {"point": (R @ (np.array(spec[k]["point"]) - centre) + centre).tolist(),
-                       "normal": (R @ spec[k]["normal"]).tolist()}
-        lo, hi = np.array(spec["crop"]["min"]), np.array(spec["crop"]["max"])
-        box = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
-                        for c in (lo[2], hi[2])])
-        box = (box - centre) @ R.T + centre
-        spec["crop"] = {"min": box.min(axis=0).tolist(), "max": box.max(axis=0).tolist()}
+        spec = moved_spec(spec0, R, np.zeros(3), centre)
         name = "flat" if angles is None else "tilted"
         write_volume(rotate_volume(v, R, centre), tmp_path / f"{name}.nii.gz")
         (tmp_path / f"{name}.json").write_text(json.dumps(spec))
@@ -457,14 +459,7 @@ def _synthetic_ct_scene(folder, angles, resolution="coarse"):
     from meshes.volume import write_volume
 
     M = np.eye(4) if angles is None else _motion(_rotation(*angles), CENTRE)
-    spec = synthetic_scene_file("class1")
-    for k in ("midsagittal", "lefort1", "occlusal", "ramus_L", "ramus_R"):
-        spec[k] = {"point": (M[:3, :3] @ spec[k]["point"] + M[:3, 3]).tolist(),
-                   "normal": (M[:3, :3] @ spec[k]["normal"]).tolist()}
-    lo, hi = np.array(spec["crop"]["min"]), np.array(spec["crop"]["max"])
-    box = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
-                    for c in (lo[2], hi[2])]) @ M[:3, :3].T + M[:3, 3]
-    spec["crop"] = {"min": box.min(axis=0).tolist(), "max": box.max(axis=0).tolist()}
+    spec = moved_spec(synthetic_scene_file("class1"), M[:3, :3], M[:3, 3], np.zeros(3))
     write_volume(_head_ct(M, ears_and_orbits=True), folder / "ct.mha")
     (folder / "scene.json").write_text(json.dumps(spec))
     r = _run(CT_SCENE + ["--ct", str(folder / "ct.mha"), "--osteotomies",
@@ -499,7 +494,7 @@ def test_tilted_synthetic_ct_landmarks_through_ct_scene(tmp_path, flat_synthetic
     one; the estimated frame is the tilt within 1 degree. (The second tilt's crop is the one
     CGAL meshed only once padded: `meshes.ct.CGAL_RETRY_PAD`. At paper the mesh follows the
     tilted voxels' staircase, whose bump under the nose was taken for Ls before
-    `meshes.landmarks.prominence_mm`.)"""
+    `meshes.landmarks.staircase_mm`.)"""
     rep, M = _synthetic_ct_scene(tmp_path, angles, resolution)
     voxel = 2.0 * np.sqrt(3.0)
     flat = flat_synthetic_ct(resolution)["landmarks"]
