@@ -271,9 +271,9 @@ def test_synthetic_ct_moved_on_the_voxel_grid_predicts_the_same(tmp_path):
     its planes and crop moved with it, through ct_scene.py and simulate.py at paper (a 5 mm
     LeFort I advance): each landmark's predicted motion within 0.2 mm of the unmoved scan's,
     and its rest position, moved back, within a voxel. Before Ls, Li and Pg were the bulges
-    that stand out most, they moved 10-20 mm; before their plateau was a voxel deep
-    (`meshes.landmarks.HOLLOW_PLATEAU_MM`), Pg's rest position moved 2.9-3.2 mm along the
-    chin's front, flat within a voxel over 15 mm. Not held (docs/decisions.md): Sn's motion,
+    that stand out most, they moved 10-20 mm; before Pg's plateau was a voxel deep
+    (`meshes.landmarks.CHIN_PLATEAU`), its rest position moved 2.9-3.2 mm along the chin's
+    front, flat within a voxel over 15 mm. Not held (docs/decisions.md): Sn's motion,
     0.22 mm on the quarter voxel (the cuts' band edges run along ragged rows of facets)."""
     from test_frame import CENTRE, _head_ct, _motion, _rotation
 
