@@ -257,3 +257,18 @@ def test_a_small_bump_does_not_take_a_lips_name():
     found = profile_landmarks(points, tris, Plane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0)))
     for name in ("Prn", "Ls", "Li", "Pg"):
         assert abs(found[name].position(points)[2] - bulges[name][0]) < 0.5, name
+
+
+@pytest.mark.unit
+def test_a_plateau_stops_at_the_next_hollow():
+    """A bulge's middle (`meshes.landmarks._middle`) is taken over its part within the
+    plateau of its top, short of the hollow beside it: a chin's plateau a voxel deep
+    (`meshes.landmarks.CHIN_PLATEAU`) would otherwise run over a shallow labiomental fold
+    into the lower lip. The profile by hand: Li at 2, the fold at 4, Pg's flat top at 6-7."""
+    from meshes.landmarks import _middle
+
+    s = np.array([0.0, 2.0, 3.0, 2.6, 2.5, 2.8, 3.2, 3.2, 3.1, 1.0, 0.0])
+    run = np.zeros(len(s), dtype=int)
+    assert _middle(s, run, 6, 1.0, 1.0) == 5   # across the fold: (2 + 8) // 2
+    assert _middle(s, run, 6, 1.0, 1.0, stops=[4]) == 6
+    assert _middle(s, run, 6, 1.0, 0.25, stops=[4]) == 6
