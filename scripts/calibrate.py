@@ -98,7 +98,7 @@ def _regions(case) -> dict:
     part, _, _ = validation.compare(case.skin.at(scene), case.skin.rest, case.skin.tris,
                                     scene.head_frame, scene.landmarks(rest=True), case.outcome,
                                     case.tris, staircase_mm(scene.domain.voxel_mm,
-                                                             scene.head_frame))
+                                                            scene.head_frame))
     return {"face": part["error_mm"], **part["regions"]}
 
 
