@@ -228,12 +228,12 @@ def profile_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
         last = max(peaks)
         chain = _most_prominent([j for j in peaks if run[j] == run[last]], stands_out)[::-1]
         found.update(zip(lips[::-1], chain))
+    plateaus = {"N": HOLLOW_PLATEAU_MM, "Pg": max(PLATEAU_MM, CHIN_PLATEAU * staircase)}
     for name in ("Prn", "N", "Ls", "Li", "Pg"):   # a flat bulge or hollow: its middle
-        i = found.get(name)
-        if i is not None:
-            sign, plateau = (-1.0, HOLLOW_PLATEAU_MM) if name == "N" else \
-                (1.0, max(PLATEAU_MM, CHIN_PLATEAU * staircase) if name == "Pg" else PLATEAU_MM)
-            found[name] = _middle(s, run, i, sign, plateau, hollows if sign > 0 else peaks)
+        if found.get(name) is not None:
+            sign, stops = (-1.0, peaks) if name == "N" else (1.0, hollows)
+            found[name] = _middle(s, run, found[name], sign, plateaus.get(name, PLATEAU_MM),
+                                  stops)
     out = {name: Landmark(tris[hits[i][0]].copy(), hits[i][1].copy())
            for name, i in found.items() if i is not None}
     if found.get("Pg") is not None:
