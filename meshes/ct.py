@@ -17,7 +17,8 @@ Stages, each with the well-kept library for it:
    the head frame (`meshes.frame`: given by the scene file's ``frame``, or estimated on the
    whole CT before the crop), or from a file;
 6. **tissues**: each cell's share of skin, fat and lean tissue (`meshes.tissue`: by HU, or
-   by a label map's ``"fat"`` label).
+   by a label map's ``"fat"`` label), the skin layer under the face's skin, not a cavity's
+   lining (`LINING_MM`).
 
 The scene file (JSON, mm in the scene's frame: the CT's patient frame with x left, y anterior,
 z superior) holds the osteotomy planes and optionally ``frame`` (`meshes.frame`), ``crop``
@@ -93,6 +94,12 @@ CGAL_SIZING = {"cell": 1.3, "facet_distance": 0.3, "radius_edge": 3.0}
 CGAL_RETRY_PAD = 10
 #: The mid-sagittal plane in the head frame's own coordinates (`meshes.frame`).
 HEAD_MIDSAGITTAL = Plane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
+#: A skin facet this deep (mm) under the face's envelope (`meshes.segment.envelope_depth`)
+#: lines a cavity open to the air around the head (the nasal cavity, an ear canal): mucosa,
+#: not dermis, so the skin layer (`meshes.tissue.SKIN_MM`) is measured from the others. On
+#: it Cranium's Sn moved up to 0.32 mm with the head on the voxel grid (docs/decisions.md);
+#: 5, 6 and 8 mm (with the envelope closed by 5, 12 and 8 mm) gave the same within 0.01.
+LINING_MM = 6.0
 #: Sampling distances outside a facet, in voxels along its normal, to read the label there.
 SAMPLE_VOXELS = (0.75, 1.5, 2.25)
 #: A facet within this many voxels of a crop face's label boundary, facing out of it, is on
@@ -430,7 +437,10 @@ def build(ct_path, scene_file, resolution: str, labelmap: bool = False):
     fat = _fat_rule(volume, spec.get("labels"), is_map,
                     None if intensity is None else intensity.noise_hu)
     if fat is not None:
-        anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin, fat)
+        depth = Volume(seg.envelope_depth(labels, volume.spacing), volume.spacing,
+                       volume.origin - volume.spacing)   # the padded labels' grid
+        outer = depth.at(anatomy.points[skin].mean(axis=1)) <= LINING_MM
+        anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin[outer], fat)
         anatomy.material = "tissues"
     timings["tissues"] = time.perf_counter() - t
     info = {"timings_s": timings, "tissues": tissue_report(anatomy),

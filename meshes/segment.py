@@ -52,6 +52,9 @@ BONE_EXPOSED_MAX = 0.25
 LABELMAP_DEFAULT = {"tissue": 1, "bone": 2}
 #: Crop faces, named by axis and side.
 FACES = ("-x", "+x", "-y", "+y", "-z", "+z")
+#: The face's envelope (`envelope_depth`): the labelled body closed by this radius (mm),
+#: wider than a nostril (7-12 mm) or an ear canal's opening (7-9 mm), so that both close.
+ENVELOPE_CLOSE_MM = 12.0
 
 
 def _components(mask, structure=None):
@@ -121,6 +124,23 @@ def labels_from_map(volume: Volume, mapping: dict | None = None):
     if not bone.any():
         raise MeshError(f"label map {volume.name} has no bone label {mapping['bone']}")
     return tissue | bone, bone
+
+
+def envelope_depth(labels: np.ndarray, spacing) -> np.ndarray:
+    """Depth (mm, float32, the shape of ``labels``, a `label_volume`) of each voxel under the
+    face's envelope: the body (every label but `OUTSIDE` and the crop) closed by
+    `ENVELOPE_CLOSE_MM` and its holes filled; 0 outside it. The air around the head in the
+    nasal cavity, behind the nostrils, or in an ear canal lies deep under it; the air at the
+    face's skin does not."""
+    from scipy import ndimage
+
+    pad = int(np.ceil(ENVELOPE_CLOSE_MM / np.min(spacing))) + 1
+    body = np.pad(np.isin(labels, (AIRWAY, TISSUE, BONE)), pad)
+    dilated = ndimage.distance_transform_edt(~body, sampling=spacing) <= ENVELOPE_CLOSE_MM
+    closed = ndimage.distance_transform_edt(dilated, sampling=spacing) > ENVELOPE_CLOSE_MM
+    closed = ndimage.binary_fill_holes(closed | body)
+    depth = ndimage.distance_transform_edt(closed, sampling=spacing).astype(np.float32)
+    return depth[pad:-pad, pad:-pad, pad:-pad]
 
 
 def label_volume(volume: Volume, body, bone, free_faces=()) -> np.ndarray:

@@ -184,3 +184,28 @@ def test_material_option_of_the_scripts(tmp_path, tiny_anatomy):
         errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]
         assert r.returncode == 2 and len(errors) == 1 and match in errors[0], r.stderr[-2000:]
         assert not rep.exists()
+
+
+def test_a_cavity_open_through_a_nostril_lies_under_the_envelope():
+    """A ball of tissue (radius 30 mm, 1 mm voxels) with a cavity (radius 8 mm, 20 mm deep)
+    open to the air around it through a nostril 5 mm wide in each axial slice it spans (air
+    no axial slice connects to the outside is airway, `meshes.segment`): the cavity's air
+    lies more than `meshes.ct.LINING_MM` under the face's envelope (its lining carries no
+    skin layer), the air at the ball's surface and at the nostril's mouth within a voxel."""
+    from meshes import segment as seg
+    from meshes.ct import LINING_MM
+
+    g = np.stack(np.meshgrid(*[np.arange(-40.0, 41.0)] * 3, indexing="ij"), axis=-1)
+    r = np.linalg.norm(g, axis=-1)
+    cavity = np.linalg.norm(g - [10.0, 0.0, 0.0], axis=-1) <= 8.0
+    nostril = (g[..., 0] >= 10.0) & (np.abs(g[..., 1]) <= 2.5) & (np.abs(g[..., 2]) <= 8.5)
+    body = (r <= 30.0) & ~cavity & ~nostril
+    labels = seg.label_volume(seg.Volume(body.astype(np.int16), np.ones(3), -40.0 * np.ones(3)),
+                              body, np.zeros_like(body))
+    assert (labels[1:-1, 1:-1, 1:-1][cavity] == seg.OUTSIDE).all()   # open to the air
+    depth = seg.envelope_depth(labels, np.ones(3))[1:-1, 1:-1, 1:-1]
+    assert depth[cavity].min() > LINING_MM and depth[40 + 10, 40, 40] > 2 * LINING_MM
+    mouth = nostril & (r > 29.0) & (r <= 31.0)
+    assert depth[mouth].max() <= 1.0 + 1e-6
+    face = (np.abs(r - 30.5) < 0.5) & ~nostril & (g[..., 0] < 0)
+    assert depth[face].max() <= 1.0 + 1e-6

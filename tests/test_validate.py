@@ -156,20 +156,39 @@ def test_validation_recovers_the_misplacement_and_the_outcome(cranium, validated
     assert (out / "distance.png").stat().st_size > 10_000 and (out / "distance.xdmf").exists()
 
 
-def own_distances(truth: dict, out) -> tuple:
-    """(covered (N,) bool, the validation's ``distance.xdmf`` in ``out``; the distance (K,) mm
-    from each covered rest skin vertex to the true outcome's skin, sampled by 16 points along
-    each triangle edge: within 0.05 mm)."""
-    import meshio
-    from scipy.spatial import cKDTree
+def _to_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The distance (K,) from each point x (K, 3) to the nearest of the triangles (a, b, c)
+    (T, 3) each, by brute force: to a triangle's plane where the point projects inside it,
+    else to the nearest of its edges (not `meshes.surface`'s nearest-centroid candidates)."""
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
 
-    from meshes.surface import subdivide
+    def to_segment(p, u, v):   # (k, T) distances from points p (k, 1, 3) to segments u-v
+        e = v - u
+        t = np.clip(np.einsum("ktj,tj->kt", p - u, e) / np.einsum("tj,tj->t", e, e), 0, 1)
+        return np.linalg.norm(p - u - t[..., None] * e, axis=2)
+
+    out = np.empty(len(x))
+    for i in range(0, len(x), 64):
+        p = x[i:i + 64, None, :]
+        h = np.einsum("ktj,tj->kt", p - a, n)
+        q = p - h[..., None] * n   # the projections onto the planes
+        inside = np.ones(h.shape, dtype=bool)
+        for u, v in ((a, b), (b, c), (c, a)):
+            inside &= np.einsum("ktj,tj->kt", np.cross(v - u, q - u), n) >= 0
+        d = np.minimum.reduce([to_segment(p, a, b), to_segment(p, b, c), to_segment(p, c, a)])
+        out[i:i + 64] = np.where(inside, np.abs(h), d).min(axis=1)
+    return out
+
+
+def own_distances(truth: dict, out) -> tuple:
+    """(covered (N,) bool, the validation's ``distance.xdmf`` in ``out``; the exact distance
+    (K,) mm from each covered rest skin vertex to the true outcome's skin: `_to_triangles`)."""
+    import meshio
 
     pts, tris = truth["after"], truth["tris"]
-    for _ in range(4):
-        pts, tris = subdivide(pts, tris)
     covered = meshio.read(out / "distance.xdmf").point_data["covered"] > 0.5
-    return covered, cKDTree(pts).query(truth["rest"][covered])[0]
+    return covered, _to_triangles(truth["rest"][covered], *(pts[tris[:, k]] for k in range(3)))
 
 
 @needs_cranium
@@ -179,7 +198,9 @@ def test_wrong_movements_report_the_error_the_test_computes(tmp_path, cranium):
     the test's own: the distance from each rest skin vertex to the true outcome's surface,
     measured here (`own_distances`), over the vertices the scan covers (the XDMF's
     ``covered``: all but where the face leaves the scene's crop, whose closest point lies on
-    the scan's rim, and the skin's own rim, 27 % of Cranium's skin vertices at coarse)."""
+    the scan's rim, and the skin's own rim, 27 % of Cranium's skin vertices at coarse),
+    within 0.01 mm (they agree within 0.002; measured to points sampled on the outcome's
+    edges, the test's own p90 lay 0.02-0.05 mm high)."""
     from meshes.surface import boundary_edges
 
     scan = tmp_path / "scan.ply"
@@ -193,7 +214,7 @@ def test_wrong_movements_report_the_error_the_test_computes(tmp_path, cranium):
     assert e["n_vertices"] == len(d)
     assert e["max"] > 2.0   # the outcome differs from the rest
     for key, mine in (("mean", d.mean()), ("p90", np.percentile(d, 90)), ("max", d.max())):
-        assert abs(e[key] - mine) < 0.05, (key, e[key], mine)
+        assert abs(e[key] - mine) < 0.01, (key, e[key], mine)
     assert abs(e["within_1mm"] - np.mean(d <= 1.0)) < 0.02, (e, np.mean(d <= 1.0))
 
 
