@@ -56,6 +56,9 @@ HOMOGENEOUS = NeoHookean()
 
 #: A material file's optional prior spreads per class (`inverse.uncertainty.Prior`).
 PRIOR_KEYS = ("sd_log_E", "sd_log_1m2nu")
+#: A material file's optional key beside its classes: the prior's correlation,
+#: ``{"names": θ's names, "matrix": nθ × nθ}`` (`calibrate.py` writes its posterior's).
+CORRELATION_KEY = "correlation"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,7 +161,8 @@ def read_material_file(path):
     """The material of a JSON file: ``{"skin": {"E": kPa, "nu": ..}, "fat": .., "muscle":
     ..}`` (`Tissues`; a class or value it leaves out keeps its default) or ``{"tissue":
     {..}}`` (one `NeoHookean`, the paper's by default). The prior's spreads `PRIOR_KEYS`
-    beside them are `inverse.uncertainty.Prior`'s. Raises `InputError` (one line)."""
+    beside them, and its `CORRELATION_KEY`, are `inverse.uncertainty.Prior`'s. Raises
+    `InputError` (one line)."""
     import json
     from pathlib import Path
 
@@ -166,6 +170,8 @@ def read_material_file(path):
         spec = json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
         raise InputError(f"cannot read material file {path}: {e}") from e
+    if isinstance(spec, dict):
+        spec = {k: v for k, v in spec.items() if k != CORRELATION_KEY}
     one = isinstance(spec, dict) and set(spec) == {"tissue"}
     if not isinstance(spec, dict) or not (one or not set(spec) - {"skin", "fat", "muscle"}):
         raise InputError(f"material file {path}: expected an object with keys skin, fat, "
@@ -185,14 +191,18 @@ def read_material_file(path):
     return out["tissue"] if one else dataclasses.replace(base, **out)
 
 
-def material_file(material, spreads=None) -> dict:
+def material_file(material, spreads=None, correlation=None) -> dict:
     """What `read_material_file` reads back as ``material``: ``{class: {"E", "nu"}}``, with
-    ``spreads`` (nθ,) where given, as the prior's (`PRIOR_KEYS`, `theta_names` order)."""
+    ``spreads`` (nθ,) where given, as the prior's (`PRIOR_KEYS`, `theta_names` order), and
+    their ``correlation`` (nθ, nθ) where given (`CORRELATION_KEY`)."""
     out = {}
     for i, (c, m) in enumerate(classes(material).items()):
         out[c] = {"E": m.E, "nu": m.nu}
         if spreads is not None:
             out[c].update(zip(PRIOR_KEYS, map(float, spreads[2 * i:2 * i + 2])))
+    if correlation is not None:
+        out[CORRELATION_KEY] = {"names": theta_names(material),
+                                "matrix": [[float(v) for v in row] for row in correlation]}
     return out
 
 

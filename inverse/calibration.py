@@ -306,6 +306,7 @@ def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
     n = len(cases.names)
     mean = np.concatenate([prior.mean, np.zeros(NG * n)])
     P0 = np.diag(1.0 / np.concatenate([prior.sd, np.tile(NUISANCE_SD, n)]) ** 2)
+    P0[:nt, :nt] = np.linalg.inv(prior.covariance)
     lo, hi = (None, None) if bounds is None else (
         np.concatenate([b, np.full(NG * n, s)]) for b, s in zip(bounds, (-np.inf, np.inf)))
     z = mean.copy()

@@ -43,7 +43,7 @@ def _band(scene, obj, prior: Prior) -> np.ndarray:
     """B (Nt·3·nθ,) at the current equilibrium. Collective."""
     (rows,) = material_rows(scene, [obj.op], rtol=None)       # (Nt, 3, nθ)
     along = np.einsum("ik,lip->lkp", obj.axes, rows)
-    return (np.sqrt(obj.weights)[:, :, None] * along * prior.sd).ravel()
+    return (np.sqrt(obj.weights)[:, :, None] * (along @ prior.factor)).ravel()
 
 
 def _parts(scene, obj, prior) -> tuple:

@@ -3,9 +3,9 @@ class's ln E and ln(1 - 2ν)) with a prior, their sensitivities dx/dθ at an equ
 prediction bands, the linearised covariance ``S_θ Σ_θ S_θᵀ`` of each landmark and vertex
 (docs/uncertainty.md).
 
-* `Prior`: independent normal per parameter (E and 1 - 2ν log-normal, multiplicative
-  bands); medians from the scene's material, spreads `SD_LOG_E` and `SD_LOG_1M2NU` or a
-  material file's.
+* `Prior`: normal on θ (E and 1 - 2ν log-normal, multiplicative bands); medians from the
+  scene's material, spreads `SD_LOG_E` and `SD_LOG_1M2NU` or a material file's,
+  independent unless the file gives their correlation (a calibration's posterior).
 * `theta_rows`: dx/dθ (N, 3, nθ) at the landmarks (and, asked for, every vertex), for nθ
   back-substitutions with the kept factorisation (`fem.equilibrium.Equilibrium.
   material_sensitivity`).
@@ -22,7 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.material import classes, material_from_spec, theta, theta_names, with_theta
+from fem.material import (
+    CORRELATION_KEY,
+    classes,
+    material_from_spec,
+    theta,
+    theta_names,
+    with_theta,
+)
 from meshes.errors import InputError, SolverError
 
 #: Prior SD of ln E per class (a 1-σ factor of e^SD). Each covers its measurements' spread
@@ -54,14 +61,16 @@ BAND_ACCURACY = 0.01
 
 @dataclasses.dataclass(frozen=True)
 class Prior:
-    """Independent normal prior on θ (`fem.material.theta_names` order).
+    """Normal prior on θ (`fem.material.theta_names` order).
 
-    Attributes: names (nθ,); mean (nθ,): ln E/kPa and ν per class; sd (nθ,).
+    Attributes: names (nθ,); mean (nθ,): ln E/kPa and ln(1 - 2ν) per class; sd (nθ,);
+    correlation (nθ, nθ), None for independent parameters.
     """
 
     names: tuple
     mean: np.ndarray
     sd: np.ndarray
+    correlation: np.ndarray | None = None
 
     @classmethod
     def of(cls, material, spreads: dict | None = None) -> "Prior":
@@ -85,16 +94,40 @@ class Prior:
     @classmethod
     def from_file(cls, path) -> "Prior":
         """From a material file (`fem.material.read_material_file`): its E and ν are the
-        medians, its optional ``sd_log_E`` and ``sd_log_1m2nu`` per class the spreads."""
+        medians, its optional ``sd_log_E`` and ``sd_log_1m2nu`` per class the spreads, its
+        optional `fem.material.CORRELATION_KEY` their correlation."""
         material = material_from_spec(str(path))
         spec = json.loads(Path(path).read_text())
-        return cls.of(material, {c: {k: v for k, v in s.items() if k.startswith("sd_")}
-                                 for c, s in spec.items()})
+        given = spec.pop(CORRELATION_KEY, None)
+        prior = cls.of(material, {c: {k: v for k, v in s.items() if k.startswith("sd_")}
+                                  for c, s in spec.items()})
+        if given is None:
+            return prior
+        try:
+            names, C = list(given["names"]), np.array(given["matrix"], dtype=float)
+            ok = names == list(prior.names) and C.shape == (len(names),) * 2 and \
+                np.allclose(C, C.T) and np.allclose(np.diag(C), 1.0)
+            ok = ok and np.linalg.eigvalsh(C).min() > 0
+        except (KeyError, TypeError, ValueError, np.linalg.LinAlgError):
+            ok = False
+        if not ok:
+            raise InputError(f"material file {path}: {CORRELATION_KEY} must be {{\"names\": "
+                             f"{list(prior.names)}, \"matrix\": a symmetric positive definite "
+                             "matrix with a unit diagonal}")
+        return dataclasses.replace(prior, correlation=C)
 
     @property
     def covariance(self) -> np.ndarray:
-        """Σ_θ (nθ, nθ), diagonal."""
-        return np.diag(self.sd ** 2)
+        """Σ_θ (nθ, nθ)."""
+        C = np.eye(len(self.sd)) if self.correlation is None else self.correlation
+        return self.sd[:, None] * C * self.sd[None, :]
+
+    @property
+    def factor(self) -> np.ndarray:
+        """L (nθ, nθ), lower triangular, Σ_θ = L Lᵀ: θ = mean + L z for z standard normal."""
+        if self.correlation is None:
+            return np.diag(self.sd)
+        return np.linalg.cholesky(self.covariance)
 
     def report(self) -> dict:
         """Per parameter: its median (E in kPa, or ν) and its 1-σ spread."""
@@ -166,7 +199,7 @@ def theta_rows(scene, names=None, vertices: bool = False, rtol: float | None = B
 
 def covariances(rows: np.ndarray, prior: Prior) -> np.ndarray:
     """``S_θ Σ_θ S_θᵀ`` (N, 3, 3) mm² of points with rows (N, 3, nθ)."""
-    scaled = rows * prior.sd
+    scaled = rows @ prior.factor
     return np.einsum("nit,njt->nij", scaled, scaled)
 
 
@@ -235,10 +268,11 @@ def sample_theta(prior: Prior, n: int, seed: int = 0) -> np.ndarray:
     def bad(x):
         return ((x[:, nu] < lo) | (x[:, nu] > hi)).any(axis=1)
 
-    out = prior.mean + prior.sd * rng.standard_normal((n, len(prior.mean)))
+    L = prior.factor
+    out = prior.mean + rng.standard_normal((n, len(prior.mean))) @ L.T
     while bad(out).any():
         redo = bad(out)
-        out[redo] = prior.mean + prior.sd * rng.standard_normal((redo.sum(), len(prior.mean)))
+        out[redo] = prior.mean + rng.standard_normal((redo.sum(), len(prior.mean))) @ L.T
     return out
 
 

@@ -15,7 +15,8 @@ shared θ (a cohort's tissue), or one each with ``--each``; all ranks share each
 with ``--split`` the ranks split into groups that take a case each.
 
 Writes ``material.json`` (``material_<case>.json`` with ``--each``): the fitted moduli, for
-``--material``, with the posterior's spreads, for ``--prior`` of the next fit; and the report:
+``--material``, with the posterior's spreads and correlation, for ``--prior`` of the next fit
+and ``--material``'s bands; and the report:
 θ with its posterior SD, the directions the data cannot see, the errors before and after
 over the face and per region, and per case its registration's correction, its skin's offset
 (mm) and the share of its skin left out as outliers. Bad input is one line, exit 2, nothing
@@ -184,7 +185,7 @@ def main(argv=None):
     import numpy as np
 
     from fem.io import write_json
-    from fem.material import material_file, with_theta
+    from fem.material import CORRELATION_KEY, material_file, with_theta
     from inverse.calibration import NG, Cases, fit
     from inverse.uncertainty import Prior, scene_prior
     from meshes.errors import InputError, MeshError
@@ -221,13 +222,15 @@ def main(argv=None):
         after = _gathered(cases, _regions)
         name = "material.json" if not args.each else f"material_{cases.names[0]}.json"
         sd = np.sqrt(np.diag(found.posterior))
-        spec = material_file(with_theta(cases.local[0][1].scene.eq.material, found.theta), sd)
+        spec = material_file(with_theta(cases.local[0][1].scene.eq.material, found.theta), sd,
+                             found.posterior / np.outer(sd, sd))
+        correlation = spec.pop(CORRELATION_KEY)
         fits.append({"cases": cases.names, "file": str(Path(args.out) / name),
                      "ratios": _ratios(prior.names, found.theta, found.posterior),
                      "theta": dict(zip(prior.names, found.theta.tolist())),
                      "posterior_sd": dict(zip(prior.names, sd.tolist())),
                      "prior_sd": dict(zip(prior.names, prior.sd.tolist())),
-                     "material": spec, "unseen": found.unseen,
+                     "material": spec, "correlation": correlation, "unseen": found.unseen,
                      "iterations": found.iterations, "converged": found.converged,
                      "history": found.history,
                      "registration_correction": {k: g[:6] for k, g in found.registration.items()},
@@ -240,7 +243,8 @@ def main(argv=None):
         lead = group.rank == 0
         fits = sorted((f for part in comm.allgather(fits if lead else []) for f in part),
                       key=lambda f: names.index(f["cases"][0]))
-    files = {Path(f["file"]).name: f["material"] for f in fits}
+    files = {Path(f["file"]).name: {**f["material"], CORRELATION_KEY: f["correlation"]}
+             for f in fits}
     out = Path(args.out)
     for name, spec in files.items():
         write_json(out / name, spec, comm)

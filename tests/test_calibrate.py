@@ -104,7 +104,11 @@ def _check_recovery(d, cases, report, seen):
     """Each ratio of a class's E to the skin's within 3 posterior SDs of the truth's, and
     within 5 % for the classes ``seen`` (their posterior SD at most 2.5 %); the moduli's
     common scale reported unseen; the face's and every region's error down to the noise; the
-    fitted material file predicting the truth's landmarks."""
+    fitted material file predicting the truth's landmarks within 3 SDs of its own band (the
+    posterior's, correlated: the unseen scale widens it little). A fixed 0.02 mm held on
+    one mesh's noise draw: on Cranium with the band edges on their lines, the same draw put
+    the skin's ln(1 - 2ν) 2.97 posterior SDs off and Prn 0.025 mm (SD 0.0089), three other
+    draws within 0.8 SDs and 0.006 mm (docs/decisions.md)."""
     from fem.material import Tissues
 
     (fitted,) = report["fits"]
@@ -125,10 +129,12 @@ def _check_recovery(d, cases, report, seen):
         for region, e in after.items():
             assert e["rms"] < 2 * NOISE_MM, (region, e)
         _ok(SIMULATE + case["scene"] + case["moves"] + [
-            "--material", fitted["file"], "--no-bands", "--report", str(d / "again.json")])
-        again = json.loads((d / "again.json").read_text())["landmarks"]
+            "--material", fitted["file"], "--report", str(d / "again.json")])
+        again = json.loads((d / "again.json").read_text())
         for k, x in case["truth"].items():
-            assert np.linalg.norm(np.subtract(again[k], x)) < 0.02, k
+            sd = np.linalg.norm(again["bands"]["landmarks"][k]["sd_mm"])
+            error = np.linalg.norm(np.subtract(again["landmarks"][k], x))
+            assert error <= 3 * sd + 1e-4, (k, error, sd)
 
 
 def test_calibration_recovers_the_synthetic_heads_tissue(synthetic):
