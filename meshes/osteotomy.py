@@ -177,6 +177,18 @@ class Osteotomies:
         tags[near] = FREE_BONE
         return tags
 
+    def edges(self) -> list:
+        """The level sets (plane, d mm) where `classify` changes a facet's tag: each cut's
+        free band's edges, d = ±``band_mm``/2 (behind a ramus cut, -``split_mm``)."""
+        b = self.band_mm / 2
+        out = []
+        for name in PLANES:
+            plane = getattr(self, name)
+            if plane is not None:
+                lo = -self.split_mm if name.startswith("ramus") else -b
+                out += [(plane, lo), (plane, b)]
+        return out
+
     def check_cuts(self, bone_points: np.ndarray):
         """Raise `MeshError` for a plane that cuts no bone (all of ``bone_points`` (K, 3) on
         one side of it)."""
