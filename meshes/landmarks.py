@@ -39,9 +39,11 @@ extent e is mapped over the sagittal plane: the outermost skin crossing of later
 from the mid-sagittal plane, every `EAR_BIN_MM` forward and up.
 
 * The ear is where e stands out by more than `PINNA_MM` from e `EAR_FRONT_MM` in front of it
-  (the cheek in front of the ear), in parts of at least `EAR_MIN_MM2`, more than
-  `EAR_BEHIND_MM` behind the front of the face, above the lips (Li, Pg or Me), and not within
-  `GAP_MM` of the skin's top or bottom.
+  (the cheek in front of the ear), in parts of at least `EAR_MIN_MM2` that somewhere stand
+  out by as much from e `EAR_FRONT_MM` behind them (or have no skin there: the crop), more
+  than `EAR_BEHIND_MM` behind the front of the face, above the lips (Li, Pg or Me), and not
+  within `GAP_MM` of the skin's top or bottom. A head that only widens backward (the jaw's
+  angle behind the cheek) is no ear: the synthetic CT had a tragion on its cheek.
 * The ear canal is the largest pit near it: deeper than the cheek in front of it by
   `CANAL_MM`, or where a lateral ray crosses no skin between two that do (the canal open to
   the air).
@@ -287,12 +289,15 @@ def tragion_landmarks(points: np.ndarray, skin: np.ndarray, plane: Plane,
                 if hit is not None:
                     e[i, j] = abs(hit[1] @ d[row[hit[0]]])
                     hits[i, j] = (row[hit[0]], hit[1])
-        front = np.full_like(e, np.nan)   # e EAR_FRONT_MM further forward
-        front[:-shift] = e[shift:]
+        front, behind = np.full_like(e, np.nan), np.full_like(e, np.nan)
+        front[:-shift], behind[shift:] = e[shift:], e[:-shift]   # EAR_FRONT_MM either way
         with np.errstate(invalid="ignore"):
             ear = (e - front > PINNA_MM) & (s_bins[:, None] < s_front - EAR_BEHIND_MM)
+            drops = ~(e - behind <= PINNA_MM)   # the head behind narrower, or out of view
         parts, sizes = _components(ear)
-        big = np.isin(parts, 1 + np.flatnonzero(sizes * EAR_BIN_MM ** 2 >= EAR_MIN_MM2))
+        pinna = np.unique(parts[ear & drops])
+        big = np.isin(parts, np.intersect1d(
+            pinna, 1 + np.flatnonzero(sizes * EAR_BIN_MM ** 2 >= EAR_MIN_MM2)))
         if not big.any():
             continue
         canal = _canal(e, front, big, shift)
