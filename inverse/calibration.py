@@ -300,13 +300,14 @@ def fit(cases: Cases, prior: Prior, noise_mm: float, max_iterations: int = 20,
     ((lo, hi), θ's units) where given; fitted again without the outliers (`OUTLIER_SDS`)
     until they stay the same. Collective over ``cases.comm``; leaves every scene at the
     fitted material."""
+    from scipy.linalg import block_diag
+
     if not (np.isfinite(noise_mm) and noise_mm > 0):
         raise InputError(f"the outcome's noise must be a positive number of mm, got {noise_mm}")
     nt = len(prior.mean)
     n = len(cases.names)
     mean = np.concatenate([prior.mean, np.zeros(NG * n)])
-    P0 = np.diag(1.0 / np.concatenate([prior.sd, np.tile(NUISANCE_SD, n)]) ** 2)
-    P0[:nt, :nt] = np.linalg.inv(prior.covariance)
+    P0 = block_diag(np.linalg.inv(prior.covariance), np.diag(np.tile(NUISANCE_SD, n) ** -2.0))
     lo, hi = (None, None) if bounds is None else (
         np.concatenate([b, np.full(NG * n, s)]) for b, s in zip(bounds, (-np.inf, np.inf)))
     z = mean.copy()
