@@ -484,8 +484,8 @@ def build(ct_path, scene_file, resolution: str, labelmap: bool = False):
     fat = _fat_rule(volume, spec.get("labels"), is_map,
                     None if intensity is None else intensity.noise_hu)
     if fat is not None:
-        depth = Volume(seg.envelope_depth(labels, volume.spacing), volume.spacing,
-                       volume.origin - volume.spacing)   # the padded labels' grid
+        depth = seg.envelope_depth(Volume(labels, volume.spacing,   # the padded labels' grid
+                                          volume.origin - volume.spacing))
         outer = depth.at(anatomy.points[skin].mean(axis=1)) <= LINING_MM
         anatomy.tissues = tissue_fractions(anatomy.points, anatomy.cells, skin[outer], fat)
         anatomy.material = "tissues"

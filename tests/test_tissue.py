@@ -191,7 +191,8 @@ def test_a_cavity_open_through_a_nostril_lies_under_the_envelope():
     open to the air around it through a nostril 5 mm wide in each axial slice it spans (air
     no axial slice connects to the outside is airway, `meshes.segment`): the cavity's air
     lies more than `meshes.ct.LINING_MM` under the face's envelope (its lining carries no
-    skin layer), the air at the ball's surface and at the nostril's mouth within a voxel."""
+    skin layer), the air at the ball's surface and at the nostril's mouth within one of its
+    voxels (2 mm: `meshes.segment.ENVELOPE_VOXEL_MM`)."""
     from meshes import segment as seg
     from meshes.ct import LINING_MM
 
@@ -203,9 +204,10 @@ def test_a_cavity_open_through_a_nostril_lies_under_the_envelope():
     labels = seg.label_volume(seg.Volume(body.astype(np.int16), np.ones(3), -40.0 * np.ones(3)),
                               body, np.zeros_like(body))
     assert (labels[1:-1, 1:-1, 1:-1][cavity] == seg.OUTSIDE).all()   # open to the air
-    depth = seg.envelope_depth(labels, np.ones(3))[1:-1, 1:-1, 1:-1]
-    assert depth[cavity].min() > LINING_MM and depth[40 + 10, 40, 40] > 2 * LINING_MM
+    depth = seg.envelope_depth(seg.Volume(labels, np.ones(3), -41.0 * np.ones(3)))
+    voxel = depth.spacing.max()   # the envelope's own (`meshes.segment.ENVELOPE_VOXEL_MM`)
+    assert depth.at(g[cavity]).min() > LINING_MM and depth.at([[10.0, 0, 0]])[0] > 2 * LINING_MM
     mouth = nostril & (r > 29.0) & (r <= 31.0)
-    assert depth[mouth].max() <= 1.0 + 1e-6
+    assert depth.at(g[mouth]).max() <= voxel + 1e-6
     face = (np.abs(r - 30.5) < 0.5) & ~nostril & (g[..., 0] < 0)
-    assert depth[face].max() <= 1.0 + 1e-6
+    assert depth.at(g[face]).max() <= voxel + 1e-6
