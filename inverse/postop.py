@@ -416,13 +416,14 @@ def _beyond_skin(G: np.ndarray, points: np.ndarray, u: np.ndarray, skin: np.ndar
     the skin."""
     from scipy.spatial import cKDTree
 
-    from meshes.surface import barycentric, closest_points, normals_at, on_rim
+    from meshes.surface import SurfaceQuery, barycentric, normals_at
 
     dist, _ = cKDTree(points[np.unique(skin)]).query(G, distance_upper_bound=reach)
     near = np.flatnonzero(np.isfinite(dist))
-    _, q, tri = closest_points(G[near], points, skin)
+    surface = SurfaceQuery(points, skin)
+    _, q, tri = surface.closest(G[near])
     out = ((np.einsum("ij,ij->i", G[near] - q, normals_at(points, skin, tri, q)) > 0)
-           & ~on_rim(q, points, skin))   # beyond its open rim: inside, or past the view
+           & ~surface.on_rim(q))   # beyond its open rim: inside, or past the view
     w = barycentric(points, skin, tri[out], q[out])
     return near[out], np.einsum("kv,kvi->ki", w, u[skin[tri[out]]])
 

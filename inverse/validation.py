@@ -168,13 +168,14 @@ def signed_distance(x: np.ndarray, normals: np.ndarray, points: np.ndarray,
     > 0 where x lies on the side its normals point to. Covered where
     the closest point lies inside the surface, not on its open rim, and the surface there
     faces the way x does, within `COVER_COS`."""
-    from meshes.surface import closest_points, normals_at, on_rim
+    from meshes.surface import SurfaceQuery, normals_at
 
-    d, q, tri = closest_points(x, points, tris)
+    surface = SurfaceQuery(points, tris)
+    d, q, tri = surface.closest(x)
     n = normals_at(points, tris, tri, q)   # one normal on an edge, whichever triangle
     side = np.einsum("ij,ij->i", x - q, n)
     facing = np.einsum("ij,ij->i", normals, n) > COVER_COS
-    return np.where(side < 0, -d, d), ~on_rim(q, points, tris) & facing, q, n
+    return np.where(side < 0, -d, d), ~surface.on_rim(q) & facing, q, n
 
 
 def region_masks(x: np.ndarray, lm: dict) -> dict:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshes.surface import apply, closest_points, on_rim, triangle_normals
+from meshes.surface import SurfaceQuery, apply, triangle_normals
 
 #: Surface ICP (`register_surface`): the correspondence cut-off (mm) of each stage, coarse to
 #: fine (a scan placed within about the first of the face), the iterations per stage, and the
@@ -45,12 +45,12 @@ def register_surface(x: np.ndarray, points: np.ndarray, tris: np.ndarray,
     scan of it noised by 0.2 mm, 0.21-0.27 degrees and 0.36-0.45 mm off with the scan's
     normals, 0.10-0.15 and 0.17-0.33 with the skin's (coarse, three seeds)."""
     T = np.eye(4)
-    faces = triangle_normals(points, tris)
+    faces, surface = triangle_normals(points, tris), SurfaceQuery(points, tris)
     for cut in ICP_CUTOFFS_MM:
         for _ in range(ICP_ITERATIONS):
             moved = apply(T, x)
-            d, q, tri = closest_points(moved, points, tris)
-            matched = (d <= cut) & ~on_rim(q, points, tris)
+            d, q, tri = surface.closest(moved)
+            matched = (d <= cut) & ~surface.on_rim(q)
             if matched.sum() < 6:
                 return T, d, matched
             n = faces[tri[matched]] if normals is None else normals[matched] @ T[:3, :3].T
@@ -58,6 +58,6 @@ def register_surface(x: np.ndarray, points: np.ndarray, tris: np.ndarray,
             T = step @ T
             if np.abs(apply(step, moved[matched]) - moved[matched]).max() < ICP_STEP_MM:
                 break
-    d, q, _ = closest_points(apply(T, x), points, tris)
-    return T, d, (d <= ICP_CUTOFFS_MM[-1]) & ~on_rim(q, points, tris)
+    d, q, _ = surface.closest(apply(T, x))
+    return T, d, (d <= ICP_CUTOFFS_MM[-1]) & ~surface.on_rim(q)
 
