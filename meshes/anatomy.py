@@ -167,7 +167,7 @@ class Anatomy:
                           "solve fails", stacklevel=2)
         self.points, self.cells = p, c.astype(np.int64)
         self._validate_tags()
-        self._validate_landmarks()
+        self.validate_landmarks()
         self._validate_tissues()
         if self.voxel_mm is not None:
             try:
@@ -218,7 +218,10 @@ class Anatomy:
                                 "leave a free band of bone between them")
         self.facets, self.facet_tags = f, t
 
-    def _validate_landmarks(self):
+    def validate_landmarks(self) -> "Anatomy":
+        """Check the landmarks alone (each on a skin facet, its weights barycentric): after
+        `validate`, where only the landmarks changed (half a second of a 184 k-cell mesh's
+        `validate` saved). Raises `MeshError`."""
         skin = {tuple(r) for r in np.sort(self.facets[self.facet_tags == SKIN], axis=1)}
         for name, lm in self.landmarks.items():
             w = np.asarray(lm.weights, float)
@@ -228,6 +231,7 @@ class Anatomy:
             if tuple(np.sort(lm.facet)) not in skin:
                 raise MeshError(f"landmark {name!r} is off the skin: its facet "
                                 f"{np.asarray(lm.facet).tolist()} is not a skin facet")
+        return self
 
     def _validate_tissues(self):
         if self.material not in MATERIALS:

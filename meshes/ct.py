@@ -478,7 +478,7 @@ def build(ct_path, scene_file, resolution: str, labelmap: bool = False):
     anatomy.landmarks = skin_landmarks(frame.to_head(anatomy.points), skin, HEAD_MIDSAGITTAL,
                                        (facets[rest], ~np.isin(tags[rest], (0, RIM))),
                                        staircase_mm(volume.spacing, frame), notes)
-    anatomy.validate()
+    anatomy.validate_landmarks()
     timings["landmarks"] = time.perf_counter() - t
     t = time.perf_counter()
     fat = _fat_rule(volume, spec.get("labels"), is_map,

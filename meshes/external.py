@@ -202,7 +202,7 @@ def load_tet_mesh(path, sidecar=None) -> Anatomy:
                       voxel_mm=spec.get("ct_voxel_mm"))
     anatomy.validate()
     anatomy.landmarks = project_landmarks(spec.get("landmarks", {}), points, facets, tags)
-    return anatomy.validate()
+    return anatomy.validate_landmarks()
 
 
 def _tissues(mesh, names, path):
@@ -252,7 +252,7 @@ def tetrahedralise(skin_file, bone_file, regions: list, landmarks: dict,
     anatomy = Anatomy(points, cells, facets, tags, segments, {}, {}, name=Path(skin_file).name)
     anatomy.validate()
     anatomy.landmarks = project_landmarks(landmarks, points, facets, tags)
-    return anatomy.validate()
+    return anatomy.validate_landmarks()
 
 
 def _gmsh_between(surfaces, h):
