@@ -58,9 +58,9 @@ def triangle_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 def vertex_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """Unit normals (N, 3) at the vertices: the area-weighted mean of their triangles'."""
     n = np.cross(points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]])
-    out = np.zeros_like(points)
-    for i in range(3):
-        np.add.at(out, tris[:, i], n)
+    corner = tris.ravel()   # bincount, not np.add.at (1.5 s of a CT validation's 28 s)
+    out = np.stack([np.bincount(corner, np.repeat(n[:, d], 3), len(points)) for d in range(3)],
+                   axis=1)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
 
@@ -168,10 +168,20 @@ def closest_points(query: np.ndarray, points: np.ndarray, tris: np.ndarray) -> t
     return SurfaceQuery(points, tris).closest(query)
 
 
+def _edges(tris: np.ndarray, **unique) -> tuple:
+    """(edges (E, 2) sorted, each (a, b) with a < b, in lexicographic order, then what
+    ``np.unique``'s options ``unique`` ask for) of the triangles' edges ab, bc, ca (3T,
+    in that order). One int64 key per edge: np.unique(axis=0) sorts rows as records, 10x
+    slower."""
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    n = int(e.max()) + 1 if len(e) else 1
+    keys, *rest = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1], **unique)
+    return (np.c_[keys // n, keys % n], *rest)
+
+
 def boundary_edges(tris: np.ndarray) -> np.ndarray:
     """Edges (E, 2) that belong to one triangle only: the open rims of a surface."""
-    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(e, axis=0, return_counts=True)
+    uniq, count = _edges(tris, return_counts=True)
     return uniq[count == 1]
 
 
@@ -183,8 +193,7 @@ def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
 def subdivide(points: np.ndarray, tris: np.ndarray) -> tuple:
     """(points, triangles): each triangle into four at its edges' midpoints (the same
     surface, other vertices and triangles)."""
-    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-    edges, inv = np.unique(e, axis=0, return_inverse=True)
+    edges, inv = _edges(tris, return_inverse=True)
     a, b, c = tris.T
     ab, bc, ca = len(points) + inv.reshape(3, -1)   # the midpoints of edges ab, bc, ca
     return (np.vstack([points, points[edges].mean(axis=1)]),
