@@ -219,9 +219,9 @@ class Anatomy:
         self.facets, self.facet_tags = f, t
 
     def validate_landmarks(self) -> "Anatomy":
-        """Check the landmarks alone (each on a skin facet, its weights barycentric): after
-        `validate`, where only the landmarks changed (half a second of a 184 k-cell mesh's
-        `validate` saved). Raises `MeshError`."""
+        """Check the landmarks alone (each on a skin facet, its weights barycentric), where
+        only they changed since `validate` (which takes 0.5 s on Cranium's 184 k cells).
+        Raises `MeshError`."""
         skin = {tuple(r) for r in np.sort(self.facets[self.facet_tags == SKIN], axis=1)}
         for name, lm in self.landmarks.items():
             w = np.asarray(lm.weights, float)
