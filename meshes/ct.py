@@ -68,6 +68,7 @@ from meshes.landmarks import skin_landmarks, staircase_mm
 from meshes.metal import METAL_HU, reduce_metal
 from meshes.osteotomy import Osteotomies, resolve_plane_files
 from meshes.plane import Plane
+from meshes.surface import unique_edges
 from meshes.synthetic import RESOLUTIONS, cache_dir
 from meshes.teeth import TEETH_HU, ct_teeth, tag_teeth
 from meshes.tissue import FAT_HU, ct_fat, tissue_fractions, tissue_report
@@ -334,7 +335,7 @@ def snap_to_edges(points: np.ndarray, cells: np.ndarray, boundary: np.ndarray, o
     start = np.searchsorted(cells.ravel()[order], np.arange(len(points) + 1))
     moved = np.zeros(len(points), dtype=bool)
     facets = boundary[on]
-    edges = np.unique(np.sort(facets[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    edges = unique_edges(facets)[0]
     for plane, level in levels:
         phi = plane.distance(points) - level
         for a, c in edges[phi[edges[:, 0]] * phi[edges[:, 1]] < 0]:

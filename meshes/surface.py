@@ -168,20 +168,21 @@ def closest_points(query: np.ndarray, points: np.ndarray, tris: np.ndarray) -> t
     return SurfaceQuery(points, tris).closest(query)
 
 
-def _edges(tris: np.ndarray, **unique) -> tuple:
+def unique_edges(tris: np.ndarray, **unique) -> tuple:
     """(edges (E, 2) sorted, each (a, b) with a < b, in lexicographic order, then what
     ``np.unique``'s options ``unique`` ask for) of the triangles' edges ab, bc, ca (3T,
     in that order). One int64 key per edge: np.unique(axis=0) sorts rows as records, 10x
     slower."""
     e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
     n = int(e.max()) + 1 if len(e) else 1
-    keys, *rest = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1], **unique)
+    out = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1], **unique)
+    keys, rest = (out[0], out[1:]) if isinstance(out, tuple) else (out, ())
     return (np.c_[keys // n, keys % n], *rest)
 
 
 def boundary_edges(tris: np.ndarray) -> np.ndarray:
     """Edges (E, 2) that belong to one triangle only: the open rims of a surface."""
-    uniq, count = _edges(tris, return_counts=True)
+    uniq, count = unique_edges(tris, return_counts=True)
     return uniq[count == 1]
 
 
@@ -193,7 +194,7 @@ def apply(T: np.ndarray, x: np.ndarray) -> np.ndarray:
 def subdivide(points: np.ndarray, tris: np.ndarray) -> tuple:
     """(points, triangles): each triangle into four at its edges' midpoints (the same
     surface, other vertices and triangles)."""
-    edges, inv = _edges(tris, return_inverse=True)
+    edges, inv = unique_edges(tris, return_inverse=True)
     a, b, c = tris.T
     ab, bc, ca = len(points) + inv.reshape(3, -1)   # the midpoints of edges ab, bc, ca
     return (np.vstack([points, points[edges].mean(axis=1)]),
