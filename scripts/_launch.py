@@ -103,7 +103,12 @@ def request(url: str, body=None, raw: bytes | None = None, timeout: float = 600.
 
 def chromium(width: int = 1400, height: int = 900):
     """A headless Chromium driven by Selenium through Debian's ChromeDriver, with the
-    browser console kept (``driver.get_log("browser")``)."""
+    browser console kept (``driver.get_log("browser")``). Its temporary files go to a folder
+    of its own, removed once the driver is gone: Chromium leaves a folder with its singleton
+    socket in $TMPDIR on every ``quit()``."""
+    import tempfile
+    import weakref
+
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -112,7 +117,16 @@ def chromium(width: int = 1400, height: int = 900):
     for a in (*CHROMIUM_ARGS, f"--window-size={width},{height}"):
         opts.add_argument(a)
     opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    tmp = tempfile.mkdtemp(prefix="orthodiff-chromium-")
+    try:
+        driver = webdriver.Chrome(service=Service(CHROMEDRIVER, env={**os.environ,
+                                                                     "TMPDIR": tmp}),
+                                  options=opts)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    weakref.finalize(driver, shutil.rmtree, tmp, ignore_errors=True)
+    return driver
 
 
 def wait_ready(driver, timeout: float = 60.0) -> float:
